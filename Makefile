@@ -1,0 +1,21 @@
+# Two commands do all set-up: `make demo` (the main job on data/sample) and `make test`.
+VENV ?= .venv
+PY := $(VENV)/bin/python
+OUT ?= out/sample
+
+.PHONY: setup demo test bench clean
+
+setup:
+	@bash scripts/setup.sh
+
+demo: setup
+	$(PY) -m turntable demo --out $(OUT)
+
+test: setup
+	$(PY) -m pytest -q
+
+bench: setup
+	for b in benchmarks/*.py; do $(PY) $$b || exit 1; done
+
+clean:
+	rm -rf out .pytest_cache

@@ -1,0 +1,99 @@
+"""Pinhole projection of the table plane and its circles; pose helpers.
+
+A point ``(X, 0, Z)`` of the table plane maps to the image through the plane
+homography ``H = K [r1 r3 t]`` (``r1``, ``r3`` the first and third columns of
+``R_cam_table``, ``t = t_cam_table``): ``x ~ H (X, Z, 1)^T``. A circle of radius
+``r`` about the table origin is the plane conic ``diag(1, 1, -r^2)`` and images
+to the conic ``C = H^{-T} diag(1, 1, -r^2) H^{-1}`` (``x^T C x = 0``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = [
+    "make_T",
+    "invert_T",
+    "rotation_from_normal",
+    "plane_homography",
+    "circle_conic",
+    "project_points",
+    "circle_points_table",
+    "camera_centre_table",
+    "angle_between_deg",
+]
+
+
+def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4x4 rigid transform from a rotation ``R`` (3, 3) and translation ``t`` (3,)."""
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(R, dtype=np.float64)
+    T[:3, 3] = np.asarray(t, dtype=np.float64).ravel()
+    return T
+
+
+def invert_T(T: np.ndarray) -> np.ndarray:
+    """Inverse of a 4x4 rigid transform (``T_b_a`` from ``T_a_b``)."""
+    R = T[:3, :3]
+    return make_T(R.T, -R.T @ T[:3, 3])
+
+
+def rotation_from_normal(normal_cam: np.ndarray, x_hint_cam: np.ndarray | None = None) -> np.ndarray:
+    """Right-handed ``R_cam_table`` whose second column is ``normal_cam``.
+
+    The table X axis is ``x_hint_cam`` (default: camera x) projected into the
+    plane; Z = X x Y. The rotation about the normal is otherwise arbitrary.
+    """
+    y = np.asarray(normal_cam, dtype=np.float64)
+    y = y / np.linalg.norm(y)
+    hint = np.array([1.0, 0.0, 0.0]) if x_hint_cam is None else np.asarray(x_hint_cam, float)
+    x = hint - y * (hint @ y)
+    if np.linalg.norm(x) < 1e-9:  # hint parallel to the normal
+        x = np.array([0.0, 0.0, 1.0]) - y * y[2]
+    x /= np.linalg.norm(x)
+    z = np.cross(x, y)
+    return np.column_stack([x, y, z])
+
+
+def plane_homography(K: np.ndarray, T_cam_table: np.ndarray) -> np.ndarray:
+    """Homography from table-plane coordinates ``(X, Z, 1)`` (mm) to pixels."""
+    R, t = T_cam_table[:3, :3], T_cam_table[:3, 3]
+    return np.asarray(K, float) @ np.column_stack([R[:, 0], R[:, 2], t])
+
+
+def circle_conic(K: np.ndarray, T_cam_table: np.ndarray, radius_mm: float) -> np.ndarray:
+    """Image conic (pixels, ``x^T C x = 0``) of the table circle of ``radius_mm``.
+
+    Scaled to unit Frobenius norm, sign chosen so the projected centre is inside
+    (``x_c^T C x_c < 0``).
+    """
+    Hinv = np.linalg.inv(plane_homography(K, T_cam_table))
+    C = Hinv.T @ np.diag([1.0, 1.0, -float(radius_mm) ** 2]) @ Hinv
+    C = 0.5 * (C + C.T)
+    return C / np.linalg.norm(C)
+
+
+def project_points(K: np.ndarray, T_cam_table: np.ndarray, pts_table: np.ndarray) -> np.ndarray:
+    """Project ``pts_table`` (N, 3) mm into pixels ``uv_px`` (N, 2); no distortion."""
+    pts = np.asarray(pts_table, dtype=np.float64).reshape(-1, 3)
+    pts_cam = pts @ T_cam_table[:3, :3].T + T_cam_table[:3, 3]
+    uvw = pts_cam @ np.asarray(K, float).T
+    return uvw[:, :2] / uvw[:, 2:3]
+
+
+def circle_points_table(radius_mm: float, n: int = 360) -> np.ndarray:
+    """``n`` points (N, 3) evenly spaced on the table circle of ``radius_mm``."""
+    th = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    return np.column_stack([radius_mm * np.cos(th), np.zeros(n), radius_mm * np.sin(th)])
+
+
+def camera_centre_table(T_cam_table: np.ndarray) -> np.ndarray:
+    """Camera centre in the table frame (3,), mm."""
+    return invert_T(T_cam_table)[:3, 3]
+
+
+def angle_between_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle in degrees between two 3-vectors."""
+    a = np.asarray(a, float) / np.linalg.norm(a)
+    b = np.asarray(b, float) / np.linalg.norm(b)
+    return float(np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b)), a @ b)))

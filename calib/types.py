@@ -1,0 +1,247 @@
+"""Data passed between calibration stages.
+
+Conventions (README "Conventions"): camera frame is OpenCV (x right, y down,
+z forward); pixel (0, 0) is the centre of the top-left pixel; the table frame has
+its origin at the pattern centre, +Y along the plane normal on the camera's side,
+right-handed; lengths in millimetres. ``T_cam_table`` maps table points into the
+camera: ``p_cam = T_cam_table @ p_table``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = [
+    "CalibrationError",
+    "Intrinsics",
+    "EdgePoints",
+    "TargetObservation",
+    "CalibrationStd",
+    "ViewCalibration",
+    "FramePose",
+    "SequenceCalibration",
+    "image_centre",
+]
+
+
+class CalibrationError(Exception):
+    """A view (or sequence) cannot be calibrated; the message says why.
+
+    Callers that know the file name prefix it; the message itself names the
+    measured reason ("inner ring not found", "view too close to
+    fronto-parallel: tilt 3.1 deg, focal length unobservable").
+    """
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics with optional OpenCV distortion.
+
+    Attributes
+    ----------
+    K : (3, 3) float64
+        Camera matrix ``[[f, 0, cx], [0, f, cy], [0, 0, 1]]`` in pixels, pixel
+        centres at integer coordinates.
+    width, height : int
+        Image size in pixels.
+    dist : (n,) float64
+        OpenCV distortion coefficients ``k1, k2, p1, p2[, k3]``; empty for none.
+    """
+
+    K: np.ndarray
+    width: int
+    height: int
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def __post_init__(self) -> None:
+        K = np.asarray(self.K, dtype=np.float64)
+        if K.shape != (3, 3):
+            raise ValueError(f"K: expected (3, 3), got {K.shape}")
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "dist", np.asarray(self.dist, dtype=np.float64).ravel())
+
+    @classmethod
+    def from_focal(
+        cls,
+        focal_px: float,
+        width: int,
+        height: int,
+        principal_point_px: tuple[float, float] | None = None,
+        dist=(),
+    ) -> "Intrinsics":
+        """Square pixels, zero skew; principal point at the image centre unless given."""
+        cx, cy = principal_point_px if principal_point_px is not None else image_centre(width, height)
+        K = np.array([[focal_px, 0.0, cx], [0.0, focal_px, cy], [0.0, 0.0, 1.0]])
+        return cls(K=K, width=int(width), height=int(height), dist=np.asarray(dist, float))
+
+    @property
+    def focal_px(self) -> float:
+        return float(self.K[0, 0])
+
+    @property
+    def principal_point_px(self) -> np.ndarray:
+        return self.K[:2, 2].copy()
+
+    @property
+    def has_distortion(self) -> bool:
+        return bool(np.any(self.dist != 0.0))
+
+
+def image_centre(width: int, height: int) -> tuple[float, float]:
+    """Centre of a ``width`` x ``height`` image with pixel centres at integers."""
+    return (width - 1) / 2.0, (height - 1) / 2.0
+
+
+@dataclass(frozen=True)
+class EdgePoints:
+    """Sub-pixel edge points that lie on one printed circle edge.
+
+    The printed ring of centre-line radius ``ring_radius_mm`` is a stroke of
+    width w; its two edges are circles of radius ``ring_radius_mm + side * w / 2``.
+    ``side`` is +1 for the outer edge, -1 for the inner edge, 0 for points on the
+    centre line itself (synthetic data, or a thin-line target).
+
+    Attributes
+    ----------
+    uv_px : (N, 2) float64
+        Image points in pixels (undistorted if the intrinsics carry distortion
+        that the caller removed; raw otherwise).
+    ring_radius_mm : float
+        Centre-line radius of the ring the edge belongs to.
+    side : int
+        -1, 0 or +1 as above.
+    """
+
+    uv_px: np.ndarray
+    ring_radius_mm: float
+    side: int
+
+    def __post_init__(self) -> None:
+        uv = np.asarray(self.uv_px, dtype=np.float64).reshape(-1, 2)
+        object.__setattr__(self, "uv_px", uv)
+        if self.side not in (-1, 0, 1):
+            raise ValueError(f"side must be -1, 0 or +1, got {self.side}")
+
+    def radius_mm(self, stroke_mm: float) -> float:
+        return self.ring_radius_mm + self.side * stroke_mm / 2.0
+
+
+@dataclass(frozen=True)
+class TargetObservation:
+    """Everything one image tells about the two concentric rings.
+
+    Attributes
+    ----------
+    edges : tuple of EdgePoints
+        Edge point sets, any number per ring (typically four: both edges of the
+        outer and of the inner ring).
+    width, height : int
+        Image size in pixels.
+    conics : dict[str, (3, 3) ndarray]
+        Fitted image conics (pixel coordinates, ``x^T C x = 0``) keyed
+        ``"outer"``/``"inner"`` for the ring centre lines; diagnostic.
+    """
+
+    edges: tuple[EdgePoints, ...]
+    width: int
+    height: int
+    conics: dict = field(default_factory=dict)
+
+    def radii_mm(self) -> list[float]:
+        return sorted({e.ring_radius_mm for e in self.edges}, reverse=True)
+
+
+@dataclass(frozen=True)
+class CalibrationStd:
+    """One-sigma uncertainties of a view calibration (NaN where not estimated)."""
+
+    focal_px: float
+    normal_deg: float
+    t_mm: np.ndarray  # (3,)
+    principal_point_px: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))
+    stroke_mm: float = float("nan")
+
+
+@dataclass(frozen=True)
+class ViewCalibration:
+    """Focal length and table pose from one view.
+
+    Attributes
+    ----------
+    intrinsics : Intrinsics
+    T_cam_table : (4, 4) float64
+        Table (mm) to camera (mm). Column 1 of its rotation is the table's +Y
+        axis (plane normal towards the camera) in camera coordinates; the
+        rotation about the normal is arbitrary but right-handed unless the
+        angle marks fixed it.
+    std : CalibrationStd
+    rms_px : float
+        RMS geometric residual of the edge points, pixels.
+    solver : str
+    stroke_mm : float
+        Stroke width used (estimated by ``refine``, nominal otherwise).
+    """
+
+    intrinsics: Intrinsics
+    T_cam_table: np.ndarray
+    std: CalibrationStd
+    rms_px: float
+    solver: str
+    stroke_mm: float = float("nan")
+
+    @property
+    def R_cam_table(self) -> np.ndarray:
+        return self.T_cam_table[:3, :3]
+
+    @property
+    def t_cam_table(self) -> np.ndarray:
+        return self.T_cam_table[:3, 3]
+
+    @property
+    def normal_cam(self) -> np.ndarray:
+        return self.T_cam_table[:3, 1]
+
+
+@dataclass(frozen=True)
+class FramePose:
+    """One frame of a calibrated sequence (a row of ``cameras.json``).
+
+    Attributes
+    ----------
+    image : str
+        File name of the frame (relative to the input folder).
+    angle_deg : float
+        Turntable angle of the frame (NaN where unknown).
+    T_cam_table : (4, 4) float64
+        Table (mm) to camera (mm) for this frame: the turntable rotation is
+        folded in, so a point fixed on the object has fixed table coordinates.
+    rms_px : float
+        RMS edge residual of the frame, pixels (NaN where not calibrated).
+    status : str
+        ``"ok"`` or the reason the frame was skipped.
+    """
+
+    image: str
+    angle_deg: float
+    T_cam_table: np.ndarray
+    rms_px: float = float("nan")
+    status: str = "ok"
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+@dataclass(frozen=True)
+class SequenceCalibration:
+    """Shared intrinsics and one pose per frame: the content of ``cameras.json``."""
+
+    intrinsics: Intrinsics
+    frames: tuple[FramePose, ...]
+    mode: str = "turntable"  # "turntable" (fixed camera) or "handheld"
+    meta: dict = field(default_factory=dict)
+
+    def ok_frames(self) -> tuple[FramePose, ...]:
+        return tuple(f for f in self.frames if f.ok)

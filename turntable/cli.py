@@ -1,0 +1,73 @@
+"""turntable: calibrated, coloured 3D meshes from turntable photos.
+
+Command line: a thin dispatcher over one module per subcommand.
+
+Each command module ``turntable.cmd_<name>`` defines ``add_arguments(parser)``
+and ``run(args) -> int``. Modules are imported only when their command runs, so
+``turntable pattern`` never pays for open3d.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import logging
+import sys
+
+from .errors import UserError
+
+# name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "calibrate": ("turntable.cmd_calibrate", "focal length and table pose from single photos of the two-ring target"),
+    "pattern": ("turntable.cmd_pattern", "write the printable target (PDF, SVG or PNG)"),
+    "synth": ("turntable.cmd_synth", "render a synthetic turntable sequence with ground truth"),
+    "calibrate-sequence": ("turntable.cmd_sequence", "calibrate a whole turntable sequence into cameras.json"),
+    "reconstruct": ("turntable.cmd_reconstruct", "photos of an object on the turntable -> coloured mesh + Rerun recording"),
+    "view": ("turntable.cmd_view", "open a Rerun recording written by reconstruct"),
+    "demo": ("turntable.cmd_demo", "run reconstruct on the bundled sample in data/sample"),
+}
+
+
+def _available() -> dict[str, tuple[str, str]]:
+    out = {}
+    for name, (mod, help_) in COMMANDS.items():
+        if importlib.util.find_spec(mod) is not None:
+            out[name] = (mod, help_)
+    return out
+
+
+def build_parser(commands: dict[str, tuple[str, str]]) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="turntable", description=__doc__.splitlines()[0])
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv: debug, tracebacks)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, (mod, help_) in commands.items():
+        p = sub.add_parser(name, help=help_, description=help_)
+        importlib.import_module(mod).add_arguments(p)
+        p.set_defaults(_module=mod)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser(_available())
+    args = parser.parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(importlib.import_module(args._module).run(args) or 0)
+    except UserError as exc:
+        print(f"turntable {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"turntable {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # last resort: a message, not a traceback
+        if args.verbose >= 2:
+            raise
+        print(f"turntable {args.command}: internal error: {type(exc).__name__}: {exc} "
+              "(run with -vv for the traceback)", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
