@@ -1,0 +1,54 @@
+"""Pose helpers and circle projection."""
+
+import numpy as np
+
+from calib.camera import (
+    angle_between_deg,
+    camera_centre_table,
+    circle_conic,
+    circle_points_table,
+    invert_T,
+    make_T,
+    plane_homography,
+    project_points,
+    rotation_from_normal,
+)
+
+
+def test_rotation_from_normal_is_right_handed_with_normal_as_second_column():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        n = rng.normal(size=3)
+        R = rotation_from_normal(n)
+        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+        assert np.linalg.det(R) > 0.999999
+        np.testing.assert_allclose(R[:, 1], n / np.linalg.norm(n), atol=1e-12)
+
+
+def test_invert_T_round_trip():
+    rng = np.random.default_rng(2)
+    R = rotation_from_normal(rng.normal(size=3))
+    T = make_T(R, rng.normal(size=3) * 100)
+    np.testing.assert_allclose(T @ invert_T(T), np.eye(4), atol=1e-12)
+
+
+def test_projected_circle_points_lie_on_circle_conic():
+    K = np.array([[1200.0, 0, 640], [0, 1200.0, 480], [0, 0, 1]])
+    n = np.array([0.1, -0.8, -0.6])
+    T = make_T(rotation_from_normal(n), [10.0, 30.0, 500.0])
+    for r in (30.0, 80.0):
+        uv = project_points(K, T, circle_points_table(r, 100))
+        x = np.column_stack([uv, np.ones(len(uv))])
+        C = circle_conic(K, T, r)
+        assert np.abs(np.einsum("ij,jk,ik->i", x, C, x)).max() < 1e-12
+        # projected centre inside the conic
+        c = plane_homography(K, T) @ [0, 0, 1.0]
+        c /= c[2]
+        assert c @ C @ c < 0
+
+
+def test_camera_centre_and_angle():
+    T = make_T(np.eye(3), [0.0, 0.0, 100.0])
+    np.testing.assert_allclose(camera_centre_table(T), [0, 0, -100.0])
+    assert abs(angle_between_deg([1, 0, 0], [0, 1, 0]) - 90.0) < 1e-12
+    assert angle_between_deg([1, 0, 0], [1, 1e-9, 0]) < 1e-6

@@ -1,0 +1,58 @@
+"""cameras.json: schema round trip and bad input."""
+
+import json
+
+import numpy as np
+import pytest
+
+from calib.camera import make_T, rotation_from_normal
+from calib.types import FramePose, Intrinsics, SequenceCalibration
+from turntable.cameras_io import read_cameras, write_cameras
+from turntable.errors import UserError
+
+
+def _seq():
+    intr = Intrinsics.from_focal(1500.0, 1280, 960, dist=[-0.1, 0.01, 0, 0, 0])
+    frames = []
+    for k in range(3):
+        T = make_T(rotation_from_normal([0, -0.8, -0.6]), [0, 20, 450 + k])
+        frames.append(FramePose(image=f"frame_{k:03d}.jpg", angle_deg=10.0 * k, T_cam_table=T, rms_px=0.1 * k))
+    frames.append(FramePose(image="bad.jpg", angle_deg=float("nan"), T_cam_table=np.eye(4),
+                            status="inner ring not found"))
+    return SequenceCalibration(intrinsics=intr, frames=tuple(frames), meta={"object": "vase"})
+
+
+def test_round_trip(tmp_path):
+    seq = _seq()
+    p = tmp_path / "cameras.json"
+    write_cameras(p, seq)
+    d = json.loads(p.read_text())
+    assert d["units"] == "mm" and d["intrinsics"]["width"] == 1280 and d["object"] == "vase"
+    assert d["frames"][3]["angle_deg"] is None  # NaN is written as null, valid JSON
+    back = read_cameras(p)
+    np.testing.assert_allclose(back.intrinsics.K, seq.intrinsics.K)
+    np.testing.assert_allclose(back.intrinsics.dist, seq.intrinsics.dist)
+    assert [f.image for f in back.ok_frames()] == [f"frame_{k:03d}.jpg" for k in range(3)]
+    assert back.frames[3].status == "inner ring not found"
+    for a, b in zip(back.frames, seq.frames):
+        np.testing.assert_allclose(a.T_cam_table, b.T_cam_table)
+    assert back.meta["object"] == "vase"
+
+
+@pytest.mark.parametrize("content,reason", [
+    ("not json", "cannot read"),
+    ("[1, 2]", "top level"),
+    ('{"units": "m", "intrinsics": {}, "frames": []}', "units"),
+    ('{"intrinsics": {"K": [[1]]}, "frames": []}', "not a valid"),
+])
+def test_bad_files_name_the_file_and_reason(tmp_path, content, reason):
+    p = tmp_path / "cams.json"
+    p.write_text(content)
+    with pytest.raises(UserError, match=reason) as exc:
+        read_cameras(p)
+    assert str(p) in str(exc.value)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(UserError, match="not found"):
+        read_cameras(tmp_path / "nope.json")
