@@ -9,7 +9,7 @@ setup:
 	@bash scripts/setup.sh
 
 demo: setup
-	$(PY) -m turntable demo --out $(OUT)
+	$(VENV)/bin/turntable reconstruct data/sample/images --r-outer 80 --r-inner 50 --stroke 3 --out $(OUT)
 
 test: setup
 	$(PY) -m pytest -q

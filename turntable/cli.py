@@ -25,7 +25,6 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "calibrate-sequence": ("turntable.cmd_sequence", "calibrate a whole turntable sequence into cameras.json"),
     "reconstruct": ("turntable.cmd_reconstruct", "photos of an object on the turntable -> coloured mesh + Rerun recording"),
     "view": ("turntable.cmd_view", "open a Rerun recording written by reconstruct"),
-    "demo": ("turntable.cmd_demo", "run reconstruct on the bundled sample in data/sample"),
 }
 
 

@@ -1,0 +1,108 @@
+"""``turntable reconstruct``: a folder of turntable photos (or a video) -> VR-ready mesh."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+
+from .cmd_calibrate import add_target_arguments, target_from_args
+from .errors import UserError
+from .progress import Progress
+from .reconstruct import ReconstructOptions, reconstruct
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("input", metavar="INPUT", help="folder of images (natural sort) or a video file")
+    add_target_arguments(parser)
+    parser.add_argument("--out", required=True, metavar="OUT", help="output folder")
+    parser.add_argument("--step-deg", type=float, metavar="D",
+                        help="known turntable step per frame (motorised tables); checked against the marks")
+    parser.add_argument("--masks", metavar="DIR", help="use these silhouettes (matched to frames by file stem)")
+    parser.add_argument("--cameras", metavar="JSON", help="use this cameras.json instead of calibrating")
+    parser.add_argument("--intrinsics", metavar="FILE", help="OpenCV calibration (YAML/JSON) to use as known intrinsics")
+    parser.add_argument("--resolution", type=int, default=256, metavar="N", help="carving grid resolution (default 256)")
+    parser.add_argument("--max-faces", type=int, default=100_000, metavar="N", help="decimate to at most N faces")
+    parser.add_argument("--every", type=int, default=1, metavar="N", help="use every N-th frame (videos, dense folders)")
+    parser.add_argument("--max-rejections", type=int, default=1, metavar="K",
+                        help="a voxel survives if at most K silhouettes reject it (default 1)")
+    parser.add_argument("--no-fusion", action="store_true", help="keep the visual hull only (no stereo)")
+    parser.add_argument("--export-colmap", action="store_true", help="also write a COLMAP text model to OUT/colmap")
+    parser.add_argument("--export-nerfstudio", action="store_true", help="also write OUT/transforms.json")
+    parser.add_argument("--spawn", action="store_true", help="open the Rerun viewer on the recording")
+    parser.add_argument("--overwrite", action="store_true", help="recompute every stage")
+    parser.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def options_from_args(args) -> ReconstructOptions:
+    if args.resolution < 16 or args.resolution > 1024:
+        raise UserError(f"--resolution must be between 16 and 1024, got {args.resolution}")
+    if args.max_faces < 100:
+        raise UserError(f"--max-faces must be at least 100, got {args.max_faces}")
+    return ReconstructOptions(
+        input=Path(args.input), out=Path(args.out), spec=target_from_args(args), step_deg=args.step_deg,
+        masks_dir=Path(args.masks) if args.masks else None, cameras=Path(args.cameras) if args.cameras else None,
+        intrinsics=Path(args.intrinsics) if args.intrinsics else None, resolution=args.resolution,
+        max_faces=args.max_faces, every=args.every, fusion=not args.no_fusion, overwrite=args.overwrite,
+        spawn=args.spawn, export_colmap=args.export_colmap, export_nerfstudio=args.export_nerfstudio,
+        max_rejections=args.max_rejections)
+
+
+def print_summary(res, stream=sys.stdout) -> None:
+    s = res.summary
+    w = stream.write
+    w(f"\nturntable reconstruct: {res.out}\n")
+    w(f"  frames used     {s['frames_used']}\n")
+    for name, why in res.frames_skipped.items():
+        w(f"  skipped         {name}: {why}\n")
+    sf = f" ± {s['focal_std_px']:.2f}" if s.get("focal_std_px") is not None else ""
+    w(f"  focal length    {s['focal_px']:.2f}{sf} px   ({s['mode']} mode)\n")
+    if s.get("rms_px") is not None:
+        w(f"  edge RMS        {s['rms_px']:.3f} px\n")
+    m = s["mesh"]
+    ext = " x ".join(f"{v:.1f}" for v in m["extent_mm"])
+    w(f"  mesh            {m['vertices']} vertices, {m['faces']} faces, "
+      f"{'watertight' if m['watertight'] else 'NOT watertight'}, {m['volume_cm3']:.1f} cm³, {ext} mm\n")
+    w(f"  fusion          {s['fusion']}\n")
+    w("  time            " + ", ".join(f"{k} {v:.1f} s" for k, v in s["time_s"].items()) + "\n")
+    for k, p in sorted(s["files"].items()):
+        w(f"  {k:<15} {p}\n")
+
+
+def run(args) -> int:
+    opts = options_from_args(args)
+    out = opts.out
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {out}: exists and is a file, not a folder")
+    from .recording import Recorder
+
+    out.mkdir(parents=True, exist_ok=True)
+    tmp_rrd = out / f".recording.{os.getpid()}.rrd"
+    t0 = time.perf_counter()
+    progress = Progress(enabled=not args.quiet)
+    rec = Recorder(tmp_rrd)
+    try:
+        try:
+            res = reconstruct(opts, progress=progress, recorder=rec)
+        finally:
+            rec.close()
+        tmp_rrd.replace(out / "recording.rrd")
+    except BaseException:
+        tmp_rrd.unlink(missing_ok=True)
+        raise
+    res.files["recording"] = out / "recording.rrd"
+    res.summary["files"]["recording"] = str(out / "recording.rrd")
+    res.summary["time_s"]["total"] = round(time.perf_counter() - t0, 2)
+    print_summary(res)
+    if res.exit_code:
+        print("turntable reconstruct: some input files could not be read (listed above); "
+              "the model was built from the others", file=sys.stderr)
+    if opts.spawn:
+        from .cmd_view import run as view
+
+        class _A:
+            target = str(out)
+
+        view(_A())
+    return res.exit_code

@@ -1,0 +1,327 @@
+"""The main job: photos of an object on the turntable -> coloured mesh + recording.
+
+Stages (each a library function in ``calib``/``recon``; this module only wires
+them, writes their artifacts and reports):
+
+1. frames      load the folder/video, check sizes, note unreadable files
+2. cameras     sequence calibration (``cameras.json``) or ``--cameras``
+3. silhouettes automatic (``recon.silhouettes``) or ``--masks``
+4. hull        visual-hull carving (``recon.carving``)
+5. fusion      per-view stereo depth and fused points (``recon.stereo``, ``recon.fusion``)
+6. mesh        watertight mesh, decimation, vertex colours (``recon.meshing``, ``recon.colorize``)
+7. export      model.glb/.ply/.obj, cameras.json, points.ply, recording.rrd, summary.json
+
+Everything in OUT is written atomically; finished stages are cached in
+``OUT/.turntable`` and reused on a re-run unless ``overwrite``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import shutil
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from calib.target import TargetSpec
+from calib.types import SequenceCalibration
+
+from .cameras_io import atomic_write_text, cameras_to_dict, read_cameras, write_cameras
+from .errors import UserError
+from .frames import Frame, load_frames
+from .progress import Progress
+from .stagecache import StageCache, stage_key
+
+log = logging.getLogger(__name__)
+
+__all__ = ["ReconstructOptions", "ReconstructResult", "reconstruct"]
+
+
+@dataclass(frozen=True)
+class ReconstructOptions:
+    input: Path
+    out: Path
+    spec: TargetSpec
+    step_deg: float | None = None
+    masks_dir: Path | None = None
+    cameras: Path | None = None
+    intrinsics: Path | None = None
+    resolution: int = 256
+    max_faces: int = 100_000
+    every: int = 1
+    fusion: bool = True
+    overwrite: bool = False
+    spawn: bool = False
+    export_colmap: bool = False
+    export_nerfstudio: bool = False
+    max_rejections: int = 1
+
+
+@dataclass
+class ReconstructResult:
+    out: Path
+    files: dict[str, Path]
+    frames_used: list[str]
+    frames_skipped: dict[str, str]
+    summary: dict = field(default_factory=dict)
+    exit_code: int = 0
+
+
+# --------------------------------------------------------------------------- helpers
+def _prepare_out(out: Path, overwrite: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {out}: exists and is a file, not a folder")
+    if out.is_dir() and overwrite:
+        shutil.rmtree(out / ".turntable", ignore_errors=True)
+    out.mkdir(parents=True, exist_ok=True)
+
+
+def _read_masks(masks_dir: Path, names: list[str], size: tuple[int, int]) -> np.ndarray:
+    """Masks matched to frames by file stem; any image format; non-zero = object."""
+    from .images import IMAGE_SUFFIXES, read_image
+
+    if not masks_dir.is_dir():
+        raise UserError(f"--masks {masks_dir}: not a folder")
+    by_stem = {p.stem: p for p in masks_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
+    W, H = size
+    out = np.zeros((len(names), H, W), bool)
+    for i, n in enumerate(names):
+        p = by_stem.get(Path(n).stem)
+        if p is None:
+            raise UserError(f"--masks {masks_dir}: no mask for frame {n} (expected {Path(n).stem}.png)")
+        m = read_image(p)
+        if m.shape[:2] != (H, W):
+            raise UserError(f"{p}: mask is {m.shape[1]}x{m.shape[0]}, frame {n} is {W}x{H}")
+        out[i] = m.max(axis=2) > 127
+    return out
+
+
+def _undistort(images: list[np.ndarray], seq: SequenceCalibration) -> list[np.ndarray]:
+    intr = seq.intrinsics
+    if not intr.has_distortion:
+        return images
+    W, H = intr.width, intr.height
+    m1, m2 = cv2.initUndistortRectifyMap(intr.K, intr.dist, None, intr.K, (W, H), cv2.CV_32FC1)
+    return [cv2.remap(im, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) for im in images]
+
+
+# --------------------------------------------------------------------------- stages
+def _stage_cameras(frames: list[Frame], opts: ReconstructOptions, progress: Progress, key: str,
+                   out: Path) -> SequenceCalibration:
+    cam_path = out / "cameras.json"
+    if opts.cameras is not None:
+        seq = read_cameras(opts.cameras)
+        names = {f.image for f in seq.frames}
+        missing = [f.name for f in frames if f.bgr is not None and f.name not in names]
+        if missing:
+            raise UserError(f"--cameras {opts.cameras}: no camera for frame(s) {', '.join(missing[:5])}")
+        return seq
+    if cam_path.is_file() and not opts.overwrite:
+        try:
+            seq = read_cameras(cam_path)
+            if seq.meta.get("stage_key") == key:
+                progress.note("cameras: reusing cameras.json")
+                return seq
+        except UserError:
+            pass
+    from .sequence_stage import calibrate_frames
+
+    intr = None
+    if opts.intrinsics is not None:
+        from .intrinsics_io import read_opencv_intrinsics
+
+        intr = read_opencv_intrinsics(opts.intrinsics)
+    with progress.stage("cameras") as tick:
+        seq = calibrate_frames([(f.name, f.bgr, f.error) for f in frames], opts.spec, step_deg=opts.step_deg,
+                               intrinsics=intr, progress=tick)
+    seq = replace(seq, meta={**seq.meta, "stage_key": key})
+    write_cameras(cam_path, seq)
+    return seq
+
+
+def _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress):
+    hit = cache.load("silhouettes", key)
+    if hit is not None:
+        progress.note("silhouettes: reused")
+        return hit["masks"].astype(bool), [str(s) for s in hit["status"]]
+    with progress.stage("silhouettes") as tick:
+        if opts.masks_dir is not None:
+            H, W = images_rgb[0].shape[:2]
+            masks = _read_masks(opts.masks_dir, names, (W, H))
+            status = ["ok" if m.any() else "mask is empty" for m in masks]
+        else:
+            from recon.silhouettes import estimate_silhouettes
+
+            res = estimate_silhouettes(images_rgb, K, Ts, opts.spec, progress=tick)
+            masks, status = np.asarray(res.masks, bool), list(res.status)
+    cache.save("silhouettes", key, masks=masks, status=np.array(status))
+    return masks, status
+
+
+def _stage_hull(masks, K, Ts, opts, cache, key, progress):
+    from recon.types import VoxelHull
+
+    hit = cache.load("hull", key)
+    if hit is not None:
+        progress.note("hull: reused")
+        return VoxelHull(values=hit["values"], origin_table=hit["origin"], voxel_mm=float(hit["voxel_mm"]))
+    from recon.carving import carve_hull
+
+    with progress.stage("carving") as tick:
+        hull = carve_hull(masks, K, Ts, radius_mm=opts.spec.r_outer_mm, resolution=opts.resolution,
+                          max_rejections=opts.max_rejections, progress=tick)
+    cache.save("hull", key, values=hull.values, origin=hull.origin_table, voxel_mm=np.array(hull.voxel_mm))
+    return hull
+
+
+# --------------------------------------------------------------------------- main
+def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, recorder=None) -> ReconstructResult:
+    """Run every stage; see the module docstring. Raises ``UserError`` on bad input."""
+    progress = progress or Progress(enabled=False)
+    out = Path(opts.out)
+    _prepare_out(out, opts.overwrite)
+    cache = StageCache(out, enabled=not opts.overwrite)
+    skipped: dict[str, str] = {}
+
+    with progress.stage("frames"):
+        frames = load_frames(opts.input, opts.every)
+    for f in frames:
+        if f.bgr is None:
+            skipped[f.name] = f.error
+            progress.note(f"skipping {f.name}: {f.error}")
+    good = [f for f in frames if f.bgr is not None]
+    frame_key = stage_key([f.name for f in frames], [f.bgr.shape for f in good],
+                          [float(f.bgr[::64, ::64].mean()) for f in good], opts.every)
+
+    cam_key = stage_key(frame_key, opts.spec.__dict__, opts.step_deg,
+                        str(opts.intrinsics) if opts.intrinsics else None)
+    seq = _stage_cameras(frames, opts, progress, cam_key, out)
+    by_name = {fp.image: fp for fp in seq.frames}
+    used: list[Frame] = []
+    for f in good:
+        fp = by_name.get(f.name)
+        if fp is None:
+            skipped[f.name] = "no camera"
+        elif not fp.ok:
+            skipped[f.name] = fp.status
+        else:
+            used.append(f)
+    if len(used) < 3:
+        raise UserError(f"{opts.input}: only {len(used)} frame(s) could be calibrated; need at least 3 "
+                        f"({'; '.join(f'{k}: {v}' for k, v in list(skipped.items())[:4])})")
+    names = [f.name for f in used]
+    K = seq.intrinsics.K
+    Ts = np.stack([by_name[n].T_cam_table for n in names])
+    images_rgb = [cv2.cvtColor(im, cv2.COLOR_BGR2RGB) for im in _undistort([f.bgr for f in used], seq)]
+
+    sil_key = stage_key(cam_key, str(opts.masks_dir), Ts)
+    masks, status = _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, sil_key, progress)
+    keep = [i for i, s in enumerate(status) if s == "ok"]
+    for i, s in enumerate(status):
+        if s != "ok":
+            skipped[names[i]] = f"silhouette: {s}"
+    if len(keep) < 3:
+        raise UserError(f"{opts.input}: only {len(keep)} usable silhouette(s); need at least 3")
+    names = [names[i] for i in keep]
+    images_rgb = [images_rgb[i] for i in keep]
+    masks, Ts = masks[keep], Ts[keep]
+
+    hull_key = stage_key(sil_key, keep, opts.resolution, opts.max_rejections)
+    hull = _stage_hull(masks, K, Ts, opts, cache, hull_key, progress)
+
+    from recon.meshing import mesh_from_hull
+
+    with progress.stage("hull mesh"):
+        hull_mesh = mesh_from_hull(hull, max_faces=opts.max_faces)
+    mesh, fused, fusion_note = hull_mesh, None, "disabled (--no-fusion)"
+    if opts.fusion:
+        from .fusion_stage import run_fusion
+
+        mesh, fused, fusion_note = run_fusion(images_rgb, masks, K, Ts, hull, hull_mesh, opts, progress)
+
+    from recon.colorize import color_vertices
+
+    with progress.stage("colour"):
+        mesh = color_vertices(mesh, images_rgb, K, Ts, masks=masks)
+
+    files = _export(out, opts, seq, names, mesh, fused, progress)
+    summary = _summary(seq, names, skipped, mesh, progress, fusion_note, files)
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=1) + "\n")
+    files["summary"] = out / "summary.json"
+    if recorder is not None:
+        _record(recorder, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh)
+    exit_code = 1 if any(f.bgr is None for f in frames) else 0
+    return ReconstructResult(out=out, files=files, frames_used=names, frames_skipped=skipped,
+                             summary=summary, exit_code=exit_code)
+
+
+def _export(out, opts, seq, names, mesh, fused, progress) -> dict[str, Path]:
+    from recon.export import export_mesh
+
+    with progress.stage("export"):
+        files = dict(export_mesh(mesh, out))
+        files["cameras"] = out / "cameras.json"
+        if fused is not None and len(fused.pts_table):
+            from .pointsio import write_points_ply
+
+            write_points_ply(out / "points.ply", fused)
+            files["points"] = out / "points.ply"
+        frames = [(n, seq_frame.T_cam_table) for n in names for seq_frame in seq.frames if seq_frame.image == n]
+        intr = seq.intrinsics
+        if opts.export_colmap:
+            from recon.export import export_colmap
+
+            files["colmap"] = export_colmap(intr.K, intr.width, intr.height, frames, out / "colmap", dist=intr.dist)
+        if opts.export_nerfstudio:
+            from recon.export import export_nerfstudio
+
+            files["nerfstudio"] = export_nerfstudio(intr.K, intr.width, intr.height, frames, out, dist=intr.dist)
+    return files
+
+
+def _summary(seq, names, skipped, mesh, progress, fusion_note, files) -> dict:
+    import trimesh
+
+    tm = trimesh.Trimesh(mesh.vertices_table, mesh.faces, process=False)
+    meta = seq.meta
+    std_f = meta.get("std", {}).get("focal_px") if isinstance(meta.get("std"), dict) else None
+
+    def num(x):
+        return None if x is None or (isinstance(x, float) and math.isnan(x)) else x
+
+    rms = [fp.rms_px for fp in seq.frames if fp.ok and not math.isnan(fp.rms_px)]
+    return {
+        "frames_used": len(names),
+        "frames_skipped": skipped,
+        "focal_px": seq.intrinsics.focal_px,
+        "focal_std_px": num(std_f),
+        "principal_point_px": seq.intrinsics.principal_point_px.tolist(),
+        "mode": seq.mode,
+        "rms_px": float(np.sqrt(np.mean(np.square(rms)))) if rms else None,
+        "mesh": {"vertices": int(len(tm.vertices)), "faces": int(len(tm.faces)),
+                 "watertight": bool(tm.is_watertight), "volume_cm3": float(tm.volume) / 1000.0,
+                 "extent_mm": (tm.bounds[1] - tm.bounds[0]).tolist()},
+        "fusion": fusion_note,
+        "time_s": {k: round(v, 2) for k, v in progress.times_s.items()},
+        "files": {k: str(v) for k, v in files.items()},
+    }
+
+
+def _record(rec, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh) -> None:
+    rec.log_target(opts.spec.r_outer_mm, opts.spec.r_inner_mm)
+    W, H = seq.intrinsics.width, seq.intrinsics.height
+    for i, n in enumerate(names):
+        small = images_rgb[i]
+        rec.log_camera(i, K, W, H, Ts[i], image_rgb=small)
+        conics = seq.meta.get("conics", {}).get(n) if isinstance(seq.meta.get("conics"), dict) else None
+        if conics:
+            rec.log_conics(i, {k: np.asarray(v) for k, v in conics.items()})
+        rec.log_silhouette(i, masks[i])
+    rec.log_mesh("hull", hull_mesh.vertices_table, hull_mesh.faces, hull_mesh.normals_table)
+    if fused is not None and len(fused.pts_table):
+        rec.log_points("points", fused.pts_table, fused.colors_rgb)
+    rec.log_mesh("mesh", mesh.vertices_table, mesh.faces, mesh.normals_table, mesh.colors_rgb)
