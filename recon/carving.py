@@ -1,0 +1,340 @@
+"""Visual hull from silhouettes, carved coarse-to-fine as a signed distance.
+
+Each view ``i`` gives a signed distance to its silhouette boundary, in pixels,
+from two Euclidean distance transforms of the mask (positive inside, negative
+outside, zero on the boundary between a foreground and a background pixel)::
+
+    s_i(u, v) = dt_in(u, v) - 1/2     for mask pixels
+    s_i(u, v) = 1/2 - dt_out(u, v)    for background pixels
+
+A table point ``X`` (mm) projecting to ``(u, v)`` at depth ``z`` gets the view's
+vote ``d_i(X) = s_i(u, v) * z / f`` (bilinear lookup, pixels converted to mm
+at the point's depth). The hull is the set where every view votes "inside";
+tolerating up to ``k`` wrong silhouettes, the voxel's value is the
+``(k + 1)``-th smallest vote (``k = max_rejections``)::
+
+    D(X) = min( d_(k+1)(X), region(X) )
+
+where ``region`` is the signed distance to the carving region (a cylinder on
+the table plane ``Y = 0`` or a box), so the hull closes flat on the table.
+For ``k = 0``, ``D`` is the min over views: a signed distance to the
+intersection of the viewing cones up to the cone's slant, so its zero level
+set is a sub-voxel surface (no staircase) and ``|D|`` bounds how far the
+surface can be, which is what makes the coarse-to-fine refinement safe: a cell
+whose ``|D|`` exceeds its half-diagonal (times a margin) cannot contain the
+surface, its children inherit its value, and only cells near the zero level
+set are evaluated at the next, twice finer, level.
+
+Out-of-image policy: a view in which a point projects outside the image (or
+behind the camera) cannot reject it (the object may overhang the frame edge
+in a few views); a point must however be seen by at least half of the views
+(and by more than ``k``), otherwise it is outside.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from .types import VoxelHull
+
+__all__ = ["carve_hull", "silhouette_sdf_px", "largest_visible_radius_mm", "largest_visible_height_mm"]
+
+_UNSEEN_PX = 1.0e6  # distance-map value that means "this view has no opinion"
+_BAND = 1.25 * math.sqrt(3.0) / 2.0  # refine when |D| < _BAND * cell edge (half diagonal + 25 %)
+_CHUNK = 1 << 18  # points per evaluation chunk (memory: views x chunk x 4 B)
+_COARSE = 32  # voxels along the longest axis of the coarsest level
+
+
+def silhouette_sdf_px(mask: np.ndarray, margin_px: int = 64) -> np.ndarray:
+    """Signed distance (pixels) to the boundary of a binary silhouette.
+
+    Parameters
+    ----------
+    mask : (H, W) bool
+        True on the object.
+    margin_px : int
+        The distance transforms run on the mask's bounding box grown by this
+        margin (exact there); farther pixels get ``-margin_px`` + 1/2, a lower
+        bound of their distance, which is all carving needs that far out.
+
+    Returns
+    -------
+    (H, W) float32
+        Positive inside, negative outside, zero half-way between a foreground
+        and a background pixel. An all-foreground mask is +``1e6`` everywhere,
+        an all-background one -``1e6`` (no boundary in the image).
+    """
+    m = np.asarray(mask)
+    if m.ndim != 2:
+        raise ValueError(f"mask: expected (H, W), got {m.shape}")
+    m = m.astype(bool, copy=False)
+    if not m.any():
+        return np.full(m.shape, -_UNSEEN_PX, np.float32)
+    if m.all():
+        return np.full(m.shape, _UNSEEN_PX, np.float32)
+    rows, cols = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
+    r0, r1 = max(rows[0] - margin_px, 0), min(rows[-1] + margin_px + 1, m.shape[0])
+    c0, c1 = max(cols[0] - margin_px, 0), min(cols[-1] + margin_px + 1, m.shape[1])
+    crop = np.ascontiguousarray(m[r0:r1, c0:c1], dtype=np.uint8)
+    out = np.full(m.shape, 0.5 - margin_px, np.float32)
+    if crop.all():  # the object fills its whole box: no background inside it
+        out[r0:r1, c0:c1] = np.float32(_UNSEEN_PX)
+        return out
+    # the crop touches the image border where the mask does: distances stay inside the image
+    d_in = cv2.distanceTransform(crop, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    d_out = cv2.distanceTransform(1 - crop, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    out[r0:r1, c0:c1] = np.where(crop > 0, d_in - 0.5, 0.5 - d_out)
+    return out
+
+
+def _check_inputs(masks, K, T_cam_table, max_rejections):
+    masks = np.asarray(masks)
+    if masks.ndim != 3:
+        raise ValueError(f"masks: expected (V, H, W), got {masks.shape}")
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3):
+        raise ValueError(f"K: expected (3, 3), got {K.shape}")
+    T = np.asarray(T_cam_table, dtype=np.float64)
+    if T.shape != (masks.shape[0], 4, 4):
+        raise ValueError(f"T_cam_table: expected ({masks.shape[0]}, 4, 4), got {T.shape}")
+    k = int(max_rejections)
+    if not 0 <= k < masks.shape[0]:
+        raise ValueError(f"max_rejections must be in [0, {masks.shape[0] - 1}] for {masks.shape[0]} views, got {k}")
+    return masks.astype(bool, copy=False), K, T, k
+
+
+def _visible(K, T, pts_table, width, height):
+    """(V, N) bool: point n projects inside image v, in front of the camera."""
+    pts_cam = np.einsum("vij,nj->vni", T[:, :3, :3], pts_table) + T[:, None, :3, 3]
+    z = pts_cam[..., 2]
+    uvw = pts_cam @ K.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v = uvw[..., 0] / uvw[..., 2], uvw[..., 1] / uvw[..., 2]
+    return (z > 0) & (u >= -0.5) & (u <= width - 0.5) & (v >= -0.5) & (v <= height - 0.5)
+
+
+def largest_visible_radius_mm(K, T_cam_table, width: int, height: int) -> float:
+    """Radius (mm) of the largest table circle about the origin seen whole in every view.
+
+    ``K`` (3, 3) pixels, ``T_cam_table`` (V, 4, 4); 0 when even the centre is unseen.
+    """
+    T = np.asarray(T_cam_table, float).reshape(-1, 4, 4)
+    th = np.linspace(0.0, 2.0 * np.pi, 72, endpoint=False)
+    best = 0.0
+    for r in np.linspace(0.0, np.linalg.norm(T[:, :3, 3], axis=1).max(), 257):
+        circle = np.column_stack([r * np.cos(th), np.zeros_like(th), r * np.sin(th)])
+        if not _visible(K, T, circle, width, height).all():
+            break
+        best = float(r)
+    return best
+
+
+def largest_visible_height_mm(K, T_cam_table, width: int, height: int) -> float:
+    """Height (mm) up the table axis that at least half of the views still see.
+
+    The highest point ``(0, h, 0)`` projecting inside the image in most views:
+    an object taller than that cannot be carved from these views anyway.
+    """
+    T = np.asarray(T_cam_table, float).reshape(-1, 4, 4)
+    hs = np.linspace(0.0, 2.0 * np.linalg.norm(T[:, :3, 3], axis=1).max(), 513)
+    axis = np.column_stack([np.zeros_like(hs), hs, np.zeros_like(hs)])
+    frac = _visible(K, T, axis, width, height).mean(axis=0)
+    below = np.flatnonzero(frac < 0.5)
+    return float(hs[below[0] - 1] if below.size and below[0] > 0 else (0.0 if below.size else hs[-1]))
+
+
+class _Region:
+    """Carving region: a vertical cylinder on the table, or an axis-aligned box (table frame, mm)."""
+
+    def __init__(self, lo: np.ndarray, hi: np.ndarray, radius_mm: float | None):
+        self.lo = np.asarray(lo, float)
+        self.hi = np.asarray(hi, float)
+        self.radius_mm = radius_mm
+
+    def sdf(self, pts: np.ndarray) -> np.ndarray:
+        """Signed distance (N,) mm, positive inside (exact for the box faces and the cylinder wall)."""
+        d_lo = pts - self.lo.astype(np.float32)
+        d_hi = self.hi.astype(np.float32) - pts
+        if self.radius_mm is None:
+            return np.minimum(d_lo, d_hi).min(axis=1)
+        wall = np.float32(self.radius_mm) - np.hypot(pts[:, 0], pts[:, 2])
+        return np.minimum(wall, np.minimum(d_lo[:, 1], d_hi[:, 1]))
+
+
+def _make_region(bounds_table, radius_mm, height_mm, K, T, width, height) -> _Region:
+    if bounds_table is not None:
+        b = np.asarray(bounds_table, dtype=np.float64)
+        if b.shape != (2, 3) or not np.all(b[1] > b[0]):
+            raise ValueError(f"bounds_table: expected (2, 3) [min, max] with max > min, got {b.tolist()}")
+        return _Region(b[0], b[1], None)
+    r = largest_visible_radius_mm(K, T, width, height) if radius_mm is None else float(radius_mm)
+    if not r > 0:
+        raise ValueError(f"carving radius must be positive, got {r} mm")
+    h = largest_visible_height_mm(K, T, width, height) if height_mm is None else float(height_mm)
+    if not h > 0:
+        raise ValueError(f"carving height must be positive, got {h} mm")
+    return _Region(np.array([-r, 0.0, -r]), np.array([r, h, r]), r)
+
+
+class _Views:
+    """Projection matrices and silhouette distance maps of all views."""
+
+    def __init__(self, masks: np.ndarray, K: np.ndarray, T: np.ndarray, max_rejections: int):
+        self.P = (K @ T[:, :3, :]).astype(np.float32)  # (V, 3, 4)
+        self.inv_f = np.float32(1.0 / math.sqrt(K[0, 0] * K[1, 1]))
+        self.sdf_px = [silhouette_sdf_px(m) for m in masks]
+        self.height, self.width = masks.shape[1:]
+        self.k = max_rejections
+        self.min_seen = max(max_rejections + 1, (len(masks) + 1) // 2)
+
+    def evaluate(self, pts_table: np.ndarray) -> np.ndarray:
+        """Order-statistic signed distance (N,) float32 mm at table points (N, 3)."""
+        pts = np.asarray(pts_table, dtype=np.float32)
+        out = np.empty(len(pts), np.float32)
+        for a in range(0, len(pts), _CHUNK):
+            out[a:a + _CHUNK] = self._evaluate_chunk(pts[a:a + _CHUNK])
+        return out
+
+    def _evaluate_chunk(self, pts: np.ndarray) -> np.ndarray:
+        n = len(pts)
+        cols = 1024
+        rows = -(-n // cols)
+        votes = np.empty((len(self.P), n), np.float32)
+        seen = np.zeros(n, np.int32)
+        for i, (P, sdf) in enumerate(zip(self.P, self.sdf_px)):
+            uvw = pts @ P[:, :3].T + P[:, 3]
+            w = uvw[:, 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u = uvw[:, 0] / w
+                v = uvw[:, 1] / w
+            inside = (w > 0) & (u >= -0.5) & (u <= self.width - 0.5) & (v >= -0.5) & (v <= self.height - 0.5)
+            map_u = np.full(rows * cols, -1.0, np.float32)
+            map_v = np.full(rows * cols, -1.0, np.float32)
+            map_u[:n] = np.where(inside, u, -1.0)
+            map_v[:n] = np.where(inside, v, -1.0)
+            s = cv2.remap(sdf, map_u.reshape(rows, cols), map_v.reshape(rows, cols), cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_REPLICATE).ravel()[:n]
+            votes[i] = np.where(inside, s * w * self.inv_f, np.float32(_UNSEEN_PX))
+            seen += inside
+        value = votes.min(axis=0) if self.k == 0 else np.partition(votes, self.k, axis=0)[self.k]
+        value[seen < self.min_seen] = -np.float32(_UNSEEN_PX)
+        return value
+
+
+def _centres(origin: np.ndarray, voxel_mm: float, idx: np.ndarray) -> np.ndarray:
+    return (origin + idx * voxel_mm).astype(np.float32)
+
+
+def _dense_idx(dims) -> np.ndarray:
+    return np.indices(dims).reshape(3, -1).T
+
+
+def _evaluate_dense(views, region, origin, voxel_mm, dims) -> np.ndarray:
+    pts = _centres(origin, voxel_mm, _dense_idx(dims))
+    return np.minimum(views.evaluate(pts), region.sdf(pts)).reshape(dims)
+
+
+def _tight_box(views: _Views, region: _Region) -> tuple[np.ndarray, np.ndarray]:
+    """Box (lo, hi) mm around what survives a coarse carve of the region."""
+    ext = region.hi - region.lo
+    h = ext.max() / _COARSE
+    dims = np.maximum(np.ceil(ext / h).astype(int), 1)
+    origin = region.lo + 0.5 * (ext - (dims - 1) * h)
+    vals = _evaluate_dense(views, region, origin, h, dims)
+    occupied = np.argwhere(vals > -_BAND * h)
+    if len(occupied) == 0:
+        raise ValueError("the silhouettes carve the whole region away: no point is inside enough views")
+    lo = origin + occupied.min(axis=0) * h - _BAND * h
+    hi = origin + occupied.max(axis=0) * h + _BAND * h
+    return np.maximum(lo, region.lo), np.minimum(hi, region.hi)
+
+
+def _refine(vals, views, region, origin, voxel_mm) -> np.ndarray:
+    """One level finer: children of cells near the zero level set are evaluated, others inherit."""
+    nx, ny, nz = vals.shape
+    child = np.broadcast_to(vals[:, None, :, None, :, None], (nx, 2, ny, 2, nz, 2)).reshape(2 * nx, 2 * ny, 2 * nz)
+    parents = np.argwhere(np.abs(vals) < _BAND * 2.0 * voxel_mm)
+    if len(parents) == 0:
+        return child
+    offsets = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    idx = (2 * parents[:, None, :] + offsets[None]).reshape(-1, 3)
+    pts = _centres(origin, voxel_mm, idx)
+    child[idx[:, 0], idx[:, 1], idx[:, 2]] = np.minimum(views.evaluate(pts), region.sdf(pts))
+    return child
+
+
+def carve_hull(masks: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, *,
+               bounds_table: np.ndarray | None = None, radius_mm: float | None = None,
+               height_mm: float | None = None, resolution: int = 256, max_rejections: int = 1,
+               progress: Callable[[int, int], None] | None = None) -> VoxelHull:
+    """Carve the visual hull of the silhouettes as a sub-voxel signed distance grid.
+
+    Parameters
+    ----------
+    masks : (V, H, W) bool
+        Silhouettes, True on the object; undistorted images.
+    K : (3, 3) float
+        Shared pinhole intrinsics, pixels.
+    T_cam_table : (V, 4, 4) float
+        Per-view pose, table (mm) to camera (mm).
+    bounds_table : (2, 3) float, optional
+        Carving box ``[min, max]`` in the table frame, mm. When omitted the
+        region is the cylinder of ``radius_mm`` on the table (``0 <= Y <=
+        height_mm``).
+    radius_mm, height_mm : float, optional
+        Cylinder radius and height, mm (typically the target's ring radius).
+        Defaults: the largest table circle every view sees whole, and the
+        highest point of the turntable axis that most views see.
+    resolution : int
+        Voxels along the longest side of the (tightened) box.
+    max_rejections : int
+        ``k``: a voxel survives if at most ``k`` views reject it.
+    progress : callable(done, total), optional
+        Called after each refinement level.
+
+    Returns
+    -------
+    VoxelHull
+        ``values`` (Nx, Ny, Nz) float32 mm, > 0 inside; the grid is the box
+        around what the coarse carve keeps plus two voxels of margin, so the
+        zero level set is closed (flat on the table plane ``Y = 0``).
+        ``meta`` holds ``max_rejections``, ``views``, ``region_lo``/``region_hi``
+        (mm) and ``evaluated`` (voxel centres projected, a cost measure).
+    """
+    masks, K, T, k = _check_inputs(masks, K, T_cam_table, max_rejections)
+    if int(resolution) < 4:
+        raise ValueError(f"resolution must be at least 4, got {resolution}")
+    V, H, W = masks.shape
+    region = _make_region(bounds_table, radius_mm, height_mm, K, T, W, H)
+    levels = max(0, int(round(math.log2(int(resolution) / _COARSE))))
+    total = levels + 2
+    views = _Views(masks, K, T, k)
+    lo, hi = _tight_box(views, region)
+    if progress is not None:
+        progress(1, total)
+    voxel = float((hi - lo).max()) / int(resolution)
+    step = 2 ** levels
+    dims = step * np.ceil(((hi - lo) + 4.0 * voxel) / (voxel * step)).astype(int)
+    centre = 0.5 * (lo + hi)
+    h = voxel * step
+    vals = _evaluate_dense(views, region, centre - 0.5 * (dims // step - 1) * h, h, dims // step)
+    evaluated = vals.size
+    if progress is not None:
+        progress(2, total)
+    for level in range(1, levels + 1):
+        h = voxel * 2 ** (levels - level)
+        n = dims // 2 ** (levels - level)
+        before = np.count_nonzero(np.abs(vals) < _BAND * 2.0 * h)
+        vals = _refine(vals, views, region, centre - 0.5 * (n - 1) * h, h)
+        evaluated += 8 * before
+        if progress is not None:
+            progress(2 + level, total)
+    cap = np.float32(np.linalg.norm(region.hi - region.lo))
+    origin = centre - 0.5 * (dims - 1) * voxel
+    meta = {"max_rejections": k, "views": V, "region_lo": region.lo.tolist(), "region_hi": region.hi.tolist(),
+            "evaluated": int(evaluated)}
+    return VoxelHull(values=np.clip(vals, -cap, cap), origin_table=origin, voxel_mm=voxel, meta=meta)
