@@ -1,0 +1,205 @@
+"""A surface from the visual hull and the fused stereo points together.
+
+Truncated signed distance fusion on the hull's own voxel grid, inside
+positive like :class:`~recon.types.VoxelHull`. Each view ``i`` renders the
+fused points that face it into a z-buffer ``Z_i`` (on every ``stride``-th
+pixel); a voxel centre at camera depth ``z`` projecting to ``x`` gets
+
+    phi_i = clip(z - Z_i(x), -tau, tau)        if z - Z_i(x) < tau,
+
+(free space in front of the seen surface, unknown far behind it). With the
+hull value ``h`` clipped to the same band and a small prior weight ``w_h``:
+
+    F = min(h, (w_h clip(h, -tau, tau) + sum_i phi_i) / (w_h + n)),
+
+``n`` the number of views that updated the voxel. Where stereo is silent
+(``n = 0``) the hull stands; where it sees deeper than the hull (a cup's
+inside, a dent) the free space is carved; ``min(h, .)`` keeps everything
+inside the hull. The surface is the zero level set (marching cubes).
+
+:func:`compare_to_hull` decides whether the fused mesh should replace the
+hull mesh: both are rendered into views and compared with the confident
+stereo depth there; see its docstring for the criterion.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from .types import DepthMap, FusedPoints, VoxelHull
+
+__all__ = ["fused_surface", "splat_depth", "compare_to_hull", "HullComparison"]
+
+
+def splat_depth(points: FusedPoints, K: np.ndarray, T_cam_table: np.ndarray, size: tuple[int, int],
+                stride: int = 2, fill_iters: int = 2) -> np.ndarray:
+    """Z-buffer (h, w) float32 of the points facing the camera, on every ``stride``-th pixel.
+
+    Empty pixels are filled ``fill_iters`` times with the nearest depth of
+    their 3x3 neighbourhood, so that pinholes between points do not let
+    surfaces behind show through. 0 where no point lands.
+    """
+    W, H = size
+    w, h = (W + stride - 1) // stride, (H + stride - 1) // stride
+    T = np.asarray(T_cam_table, float)
+    centre = -T[:3, :3].T @ T[:3, 3]
+    p = np.asarray(points.pts_table, float)
+    facing = np.sum(np.asarray(points.normals_table) * (centre - p), axis=1) > 0
+    pc = p[facing] @ T[:3, :3].T + T[:3, 3]
+    uvw = pc @ (np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(K, float)).T
+    z = uvw[:, 2]
+    ok = z > 1e-6
+    x = np.rint(uvw[ok, 0] / z[ok]).astype(np.intp)
+    y = np.rint(uvw[ok, 1] / z[ok]).astype(np.intp)
+    z = z[ok]
+    inb = (x >= 0) & (y >= 0) & (x < w) & (y < h)
+    zbuf = np.full(h * w, np.inf)
+    np.minimum.at(zbuf, y[inb] * w + x[inb], z[inb])
+    zbuf = zbuf.reshape(h, w)
+    for _ in range(fill_iters):
+        zbuf = np.where(np.isfinite(zbuf), zbuf, ndimage.minimum_filter(zbuf, size=3))
+    return np.where(np.isfinite(zbuf), zbuf, 0.0).astype(np.float32)
+
+
+def _tsdf(hull: VoxelHull, zbufs, K_sub, Ts, tau, hull_weight, progress):
+    vals = np.asarray(hull.values, np.float32)
+    idx = np.nonzero(vals > -tau)
+    pts = (np.asarray(hull.origin_table, float) + np.stack(idx, 1) * float(hull.voxel_mm)).astype(np.float32)
+    acc = np.zeros(len(pts), np.float32)
+    cnt = np.zeros(len(pts), np.float32)
+    for i, (zb, T) in enumerate(zip(zbufs, Ts)):
+        P = (K_sub @ T[:3, :]).astype(np.float32)
+        uvw = pts @ P[:, :3].T + P[:, 3]
+        z = uvw[:, 2]
+        h, w = zb.shape
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = np.rint(uvw[:, 0] / z)
+            y = np.rint(uvw[:, 1] / z)
+        inb = (z > 0) & (x >= 0) & (y >= 0) & (x < w) & (y < h)
+        obs = np.zeros(len(pts), np.float32)
+        obs[inb] = zb[y[inb].astype(np.intp), x[inb].astype(np.intp)]
+        phi = z - obs
+        upd = (obs > 0) & (phi < tau)
+        acc[upd] += np.maximum(phi[upd], -tau)
+        cnt[upd] += 1.0
+        if progress is not None:
+            progress(i + 1, len(Ts))
+    h0 = np.clip(vals[idx], -tau, tau)
+    F = vals.copy()
+    F[idx] = np.minimum(vals[idx], (hull_weight * h0 + acc) / (hull_weight + cnt))
+    return F
+
+
+def fused_surface(points: FusedPoints, hull: VoxelHull, K: np.ndarray, T_cam_table: Sequence[np.ndarray] | np.ndarray,
+                  depths: Sequence[DepthMap] | None = None, *, size: tuple[int, int] | None = None,
+                  trunc_mm: float | None = None, hull_weight: float = 0.1, stride: int = 2,
+                  progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh of the hull carved and refined by the fused stereo points.
+
+    Parameters
+    ----------
+    points : FusedPoints
+        From :func:`recon.fusion.fuse_depths` (table mm, normals towards cameras).
+    hull : VoxelHull
+        The visual hull; its grid is the TSDF grid.
+    K : (3, 3) float64
+        Intrinsics of the (H, W) images.
+    T_cam_table : (V, 4, 4) float64
+        Poses of the views that saw the points.
+    depths : sequence of DepthMap, optional
+        Only used for the image size when ``size`` is not given.
+    size : (W, H), optional
+        Image size.
+    trunc_mm : float, optional
+        TSDF truncation ``tau``; default ``max(3 voxels, 2 mm)``.
+    hull_weight : float
+        Weight of the hull prior, in views.
+    stride : int
+        Pixel step of the per-view z-buffers.
+
+    Returns
+    -------
+    vertices_table : (N, 3) float64, mm
+    faces : (M, 3) int64, counter-clockwise seen from outside
+    """
+    from .stereo import hull_mesh
+
+    Ts = np.asarray(T_cam_table, dtype=np.float64).reshape(-1, 4, 4)
+    if size is None:
+        if not depths:
+            raise ValueError("give size=(W, H) or the depth maps")
+        H, W = depths[0].depth_mm.shape
+        size = (W, H)
+    tau = float(trunc_mm) if trunc_mm is not None else max(3.0 * float(hull.voxel_mm), 2.0)
+    if len(points.pts_table) == 0:
+        return hull_mesh(hull)
+    zbufs = [splat_depth(points, K, T, size, stride) for T in Ts]
+    K_sub = np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(K, float)
+    F = _tsdf(hull, zbufs, K_sub, Ts, tau, hull_weight, progress)
+    return hull_mesh(VoxelHull(values=F, origin_table=hull.origin_table, voxel_mm=hull.voxel_mm))
+
+
+# --------------------------------------------------------------------------- decision
+@dataclass(frozen=True)
+class HullComparison:
+    """Agreement of two meshes with the confident stereo depth.
+
+    ``*_err_mm``: mean over confident stereo pixels of ``min(|D_mesh - D_stereo|, cap_mm)``;
+    ``n_pixels``: pixels compared; ``use_fused``: the decision.
+    """
+
+    hull_err_mm: float
+    fused_err_mm: float
+    n_pixels: int
+    use_fused: bool
+
+
+def _render_depth(verts, faces, K, T, size):
+    from .stereo import pixel_rays_table
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(verts, np.float32)), o3d.core.Tensor(np.asarray(faces, np.uint32)))
+    centre, dirs = pixel_rays_table(K, T, size)
+    rays = np.concatenate([np.broadcast_to(centre, dirs.shape), dirs], -1).astype(np.float32)
+    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    return np.where(np.isfinite(t), t, 0.0)
+
+
+def compare_to_hull(hull_mesh_vf: tuple[np.ndarray, np.ndarray], fused_mesh_vf: tuple[np.ndarray, np.ndarray],
+                    depths: Sequence[DepthMap], K: np.ndarray, T_cam_table: Sequence[np.ndarray] | np.ndarray, *,
+                    min_confidence: float = 0.5, cap_mm: float = 10.0, margin: float = 0.95,
+                    stride: int = 4) -> HullComparison:
+    """Should the fused mesh replace the hull mesh?
+
+    Both meshes are ray-cast into each given view and compared with the
+    stereo depth wherever it is confident; the error of a pixel is
+    ``min(|D_mesh - D_stereo|, cap_mm)`` (the cap bounds stereo outliers and
+    pixels a mesh misses). The fused mesh wins when its mean error is below
+    ``margin`` times the hull's. Stereo depth is evidence that silhouettes do
+    not use, so the test cannot be passed by the hull "agreeing with itself";
+    pass depth maps of views *not* used to build the fused mesh (e.g. odd
+    frames when even frames were fused) for a held-out test.
+    """
+    Ts = np.asarray(T_cam_table, dtype=np.float64).reshape(-1, 4, 4)
+    if len(depths) != len(Ts):
+        raise ValueError(f"{len(depths)} depth maps but {len(Ts)} poses")
+    Ks = np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(K, float)
+    errs = {"hull": [], "fused": []}
+    for dm, T in zip(depths, Ts):
+        d = np.where(dm.confidence >= min_confidence, dm.depth_mm, 0.0)[::stride, ::stride]
+        size = (d.shape[1], d.shape[0])
+        sel = d > 0
+        for name, (v, f) in (("hull", hull_mesh_vf), ("fused", fused_mesh_vf)):
+            r = _render_depth(v, f, Ks, T, size)[sel]
+            errs[name].append(np.where(r > 0, np.minimum(np.abs(r - d[sel]), cap_mm), cap_mm))
+    e_h = np.concatenate(errs["hull"]) if errs["hull"] else np.zeros(0)
+    e_f = np.concatenate(errs["fused"]) if errs["fused"] else np.zeros(0)
+    if len(e_h) == 0:
+        return HullComparison(float("nan"), float("nan"), 0, False)
+    mh, mf = float(e_h.mean()), float(e_f.mean())
+    return HullComparison(hull_err_mm=mh, fused_err_mm=mf, n_pixels=int(len(e_h)), use_fused=mf < margin * mh)
