@@ -45,7 +45,7 @@ __all__ = ["carve_hull", "silhouette_sdf_px", "largest_visible_radius_mm", "larg
 
 _UNSEEN_PX = 1.0e6  # distance-map value that means "this view has no opinion"
 _BAND = 1.25 * math.sqrt(3.0) / 2.0  # refine when |D| < _BAND * cell edge (half diagonal + 25 %)
-_CHUNK = 1 << 18  # points per evaluation chunk (memory: views x chunk x 4 B)
+_CHUNK = 1 << 16  # points per evaluation chunk (memory: 3 x views x chunk x 4 B)
 _COARSE = 32  # voxels along the longest axis of the coarsest level
 
 
@@ -200,29 +200,35 @@ class _Views:
         return out
 
     def _evaluate_chunk(self, pts: np.ndarray) -> np.ndarray:
-        n = len(pts)
-        cols = 1024
+        n, cols = len(pts), 1024
         rows = -(-n // cols)
-        votes = np.empty((len(self.P), n), np.float32)
-        seen = np.zeros(n, np.int32)
-        for i, (P, sdf) in enumerate(zip(self.P, self.sdf_px)):
-            uvw = pts @ P[:, :3].T + P[:, 3]
-            w = uvw[:, 2]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                u = uvw[:, 0] / w
-                v = uvw[:, 1] / w
-            inside = (w > 0) & (u >= -0.5) & (u <= self.width - 0.5) & (v >= -0.5) & (v <= self.height - 0.5)
-            map_u = np.full(rows * cols, -1.0, np.float32)
-            map_v = np.full(rows * cols, -1.0, np.float32)
-            map_u[:n] = np.where(inside, u, -1.0)
-            map_v[:n] = np.where(inside, v, -1.0)
-            s = cv2.remap(sdf, map_u.reshape(rows, cols), map_v.reshape(rows, cols), cv2.INTER_LINEAR,
-                          borderMode=cv2.BORDER_REPLICATE).ravel()[:n]
-            votes[i] = np.where(inside, s * w * self.inv_f, np.float32(_UNSEEN_PX))
-            seen += inside
-        value = votes.min(axis=0) if self.k == 0 else np.partition(votes, self.k, axis=0)[self.k]
+        pts_h = np.zeros((4, rows * cols), np.float32)
+        pts_h[:3, :n] = pts.T
+        pts_h[3] = 1.0
+        proj = self.P.reshape(-1, 4) @ pts_h  # (3 V, n): u w, v w, w of every view
+        best = [np.full(rows * cols, np.inf, np.float32) for _ in range(self.k + 1)]  # k+1 smallest votes, sorted
+        seen = np.zeros(rows * cols, np.uint16)
+        inv_w, u, v, vote = (np.empty(rows * cols, np.float32) for _ in range(4))
+        for i, sdf in enumerate(self.sdf_px):
+            w = proj[3 * i + 2]
+            np.divide(1.0, w, out=inv_w)
+            np.multiply(proj[3 * i], inv_w, out=u)
+            np.multiply(proj[3 * i + 1], inv_w, out=v)
+            u[w <= 0] = -4.0  # behind the camera: off the image
+            np.clip(u, -4.0, self.width + 3.0, out=u)
+            np.clip(v, -4.0, self.height + 3.0, out=v)
+            s = cv2.remap(sdf, u.reshape(rows, cols), v.reshape(rows, cols), cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=_UNSEEN_PX).ravel()
+            seen += s < 0.5 * _UNSEEN_PX
+            np.multiply(s, w, out=vote)
+            vote *= self.inv_f
+            for j in range(self.k + 1):  # insert the vote into the sorted k+1 smallest
+                lo = np.minimum(best[j], vote)
+                np.maximum(best[j], vote, out=vote)
+                best[j] = lo
+        value = best[self.k]
         value[seen < self.min_seen] = -np.float32(_UNSEEN_PX)
-        return value
+        return value[:n]
 
 
 def _centres(origin: np.ndarray, voxel_mm: float, idx: np.ndarray) -> np.ndarray:
