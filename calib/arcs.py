@@ -1,0 +1,263 @@
+"""Edge arcs and the ellipses they make up (coarse search for the rings).
+
+Arcs: Canny edge pixels split by the quadrant of their gradient direction
+``(sign g_u, sign g_v)`` and linked into 8-connected components. A closed
+ellipse edge breaks into four arcs at its axis-aligned tangents; the two edges
+of a dark stroke have opposite gradients, so they never share an arc; an edge
+meeting another at a right angle (an occluder's outline) leaves the arc.
+
+Ellipses: RANSAC over arcs. Every arc carries its scatter matrix
+``S = sum_k d_k d_k^T`` with ``d = (x^2, x y, y^2, x, y, 1)`` (normalised
+coordinates), so the direct least-squares ellipse fit (Fitzgibbon; Halir &
+Flusser) of any union of arcs is the fit of the sum of their matrices: all
+single-arc and arc-pair hypotheses are fitted in one batch. Each hypothesis is
+scored by the length of the arcs whose samples lie within a Sampson distance
+``tol`` of it; the best is refitted on its arcs, its arcs are removed, repeat.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+__all__ = ["Arcs", "ArcEllipse", "extract_arcs", "find_ellipses"]
+
+
+@dataclass(frozen=True)
+class Arcs:
+    """Edge arcs of one image.
+
+    Attributes
+    ----------
+    length : (A,) int
+        Pixel count of each arc.
+    scatter : (A, 6, 6) float64
+        Scatter matrices of each arc's pixels in normalised coordinates
+        ``x = (u - norm[0]) / norm[2]``, ``y = (v - norm[1]) / norm[2]``.
+    samples_px : (A, Q, 2) float64
+        Q pixels of each arc (pixels), spread along it.
+    norm : (3,) float64
+        ``(u0, v0, scale)`` of the normalisation.
+    """
+
+    length: np.ndarray
+    scatter: np.ndarray
+    samples_px: np.ndarray
+    norm: np.ndarray
+
+
+@dataclass(frozen=True)
+class ArcEllipse:
+    """An ellipse supported by arcs: conic (pixels), its arcs, and coverage.
+
+    ``coverage`` is the supporting arcs' pixel count over the ellipse perimeter.
+    """
+
+    conic: np.ndarray
+    arc_ids: np.ndarray
+    support_px: float
+    coverage: float
+
+
+def extract_arcs(grey: np.ndarray, *, min_length: int = 12, samples: int = 8,
+                 low_frac: float = 0.15, high_frac: float = 0.35) -> Arcs:
+    """Arcs of the Canny edges of ``grey`` (H, W) uint8.
+
+    Canny thresholds are ``low_frac`` / ``high_frac`` of the image's grey range
+    (1st to 99th percentile) times the Sobel gain of a blurred step, so dim or
+    low-contrast photos are handled like bright ones.
+    """
+    h, w = grey.shape
+    g = cv2.GaussianBlur(grey, (0, 0), 1.0)
+    hist = cv2.calcHist([g], [0], None, [256], [0, 256]).ravel()
+    cdf = np.cumsum(hist) / hist.sum()
+    contrast = max(float(np.searchsorted(cdf, 0.99) - np.searchsorted(cdf, 0.01)), 20.0)
+    gx = cv2.Sobel(g, cv2.CV_16S, 1, 0, ksize=3)
+    gy = cv2.Sobel(g, cv2.CV_16S, 0, 1, ksize=3)
+    gain = 3.0  # Sobel 3x3 peak response per grey level of a sigma-1 blurred step
+    edges = cv2.Canny(gx, gy, low_frac * gain * contrast, high_frac * gain * contrast, L2gradient=True)
+    quad = ((gx >= 0).astype(np.uint8) + 2 * (gy >= 0).astype(np.uint8))
+    labels = np.zeros((h, w), np.int32)
+    n_total = 0
+    for q in range(4):
+        m = ((edges > 0) & (quad == q)).astype(np.uint8)
+        n, lab = cv2.connectedComponents(m, connectivity=8, ltype=cv2.CV_32S)
+        sel = lab > 0
+        labels[sel] = lab[sel] + n_total
+        n_total += n - 1
+    vs, us = np.nonzero(labels)
+    lab = labels[vs, us] - 1
+    counts = np.bincount(lab, minlength=n_total)
+    keep = counts >= min_length
+    remap = -np.ones(n_total, np.int64)
+    remap[keep] = np.arange(np.count_nonzero(keep))
+    lab = remap[lab]
+    sel = lab >= 0
+    us, vs, lab = us[sel].astype(np.float64), vs[sel].astype(np.float64), lab[sel]
+    n_arcs = int(np.count_nonzero(keep))
+    norm = np.array([(w - 1) / 2.0, (h - 1) / 2.0, max(w, h) / 2.0])
+    x, y = (us - norm[0]) / norm[2], (vs - norm[1]) / norm[2]
+    scatter = _scatter(x, y, lab, n_arcs)
+    order = np.argsort(lab, kind="stable")
+    length = np.bincount(lab, minlength=n_arcs)
+    starts = np.concatenate([[0], np.cumsum(length)[:-1]])
+    pick = starts[:, None] + (np.arange(samples)[None, :] * length[:, None]) // samples
+    pts = np.column_stack([us, vs])[order]
+    samples_px = pts[pick] if n_arcs else np.zeros((0, samples, 2))
+    return Arcs(length=length, scatter=scatter, samples_px=samples_px, norm=norm)
+
+
+def _scatter(x: np.ndarray, y: np.ndarray, lab: np.ndarray, n: int) -> np.ndarray:
+    """Per-label scatter matrices (n, 6, 6) of ``d = (x^2, xy, y^2, x, y, 1)``."""
+    mon = {}
+    for i in range(5):
+        for j in range(5 - i):
+            if i + j <= 4:
+                mon[(i, j)] = np.bincount(lab, weights=x**i * y**j, minlength=n)
+    powers = [(2, 0), (1, 1), (0, 2), (1, 0), (0, 1), (0, 0)]
+    S = np.empty((n, 6, 6))
+    for a, pa in enumerate(powers):
+        for b, pb in enumerate(powers):
+            S[:, a, b] = mon[(pa[0] + pb[0], pa[1] + pb[1])]
+    return S
+
+
+def fit_scatter(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batched ellipse-specific direct fit from scatter matrices (B, 6, 6).
+
+    Returns conics (B, 3, 3) in the normalised coordinates and a validity flag (B,).
+    """
+    S1, S2, S3 = S[:, :3, :3], S[:, :3, 3:], S[:, 3:, 3:]
+    ok = np.abs(np.linalg.det(S3)) > 1e-14 * np.maximum(np.abs(S3[:, 2, 2]) ** 3, 1e-300)
+    S3s = np.where(ok[:, None, None], S3, np.eye(3)[None])
+    Tm = -np.linalg.solve(S3s, np.transpose(S2, (0, 2, 1)))
+    M = S1 + S2 @ Tm
+    M = np.stack([M[:, 2] / 2.0, -M[:, 1], M[:, 0] / 2.0], axis=1)
+    M = np.where(np.isfinite(M), M, 0.0)
+    w_, V = np.linalg.eig(M)
+    V, w_ = np.real(V), np.real(w_)
+    cond = 4 * V[:, 0, :] * V[:, 2, :] - V[:, 1, :] ** 2  # (B, 3)
+    score = np.where(cond > 0, np.abs(w_), np.inf)
+    k = np.argmin(score, axis=1)
+    ok &= np.isfinite(score[np.arange(len(k)), k])
+    a1 = V[np.arange(len(k)), :, k]  # (B, 3)
+    a2 = np.einsum("bij,bj->bi", Tm, a1)
+    A, B, C = a1[:, 0], a1[:, 1], a1[:, 2]
+    D, E, F = a2[:, 0], a2[:, 1], a2[:, 2]
+    Q = np.stack([np.stack([A, B / 2, D / 2], -1), np.stack([B / 2, C, E / 2], -1),
+                  np.stack([D / 2, E / 2, F], -1)], axis=1)
+    Q /= np.linalg.norm(Q, axis=(1, 2), keepdims=True) + 1e-300
+    Q *= np.where(Q[:, 0, 0] + Q[:, 1, 1] < 0, -1.0, 1.0)[:, None, None]
+    return Q, ok
+
+
+def to_pixels(Q: np.ndarray, norm: np.ndarray) -> np.ndarray:
+    """Conics in normalised coordinates (..., 3, 3) to pixel conics."""
+    N = np.array([[1 / norm[2], 0, -norm[0] / norm[2]], [0, 1 / norm[2], -norm[1] / norm[2]], [0, 0, 1.0]])
+    C = N.T @ Q @ N
+    return C / np.linalg.norm(C, axis=(-2, -1), keepdims=True)
+
+
+def _axes(C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Semi-axes (a >= b) of pixel conics (B, 3, 3); NaN where not an ellipse."""
+    A2 = C[:, :2, :2]
+    det2 = np.linalg.det(A2)
+    ok = det2 > 0
+    c = np.linalg.solve(np.where(ok[:, None, None], A2, np.eye(2)[None]), -C[:, :2, 2:3])[..., 0]
+    xc = np.concatenate([c, np.ones((len(c), 1))], axis=1)
+    k = -np.einsum("bi,bij,bj->b", xc, C, xc)
+    ok &= k > 0
+    ev = np.linalg.eigvalsh(A2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = np.sqrt(k / ev[:, 0])
+        b = np.sqrt(k / ev[:, 1])
+    a = np.where(ok & (ev[:, 0] > 0), a, np.nan)
+    b = np.where(ok & (ev[:, 0] > 0), b, np.nan)
+    return a, b, c
+
+
+def sampson_batch(C: np.ndarray, uv_px: np.ndarray) -> np.ndarray:
+    """|Sampson distance| (B, N), pixels, of points (N, 2) to conics (B, 3, 3)."""
+    u, v = uv_px[:, 0], uv_px[:, 1]
+    one = np.ones_like(u)
+    mono = np.column_stack([u * u, 2 * u * v, v * v, 2 * u, 2 * v, one])  # (N, 6)
+    coef = np.stack([C[:, 0, 0], C[:, 0, 1], C[:, 1, 1], C[:, 0, 2], C[:, 1, 2], C[:, 2, 2]])  # (6, B)
+    num = mono @ coef
+    X = np.column_stack([u, v, one])
+    gu = X @ C[:, 0, :].T
+    gv = X @ C[:, 1, :].T
+    return (np.abs(num) / np.maximum(2.0 * np.hypot(gu, gv), 1e-300)).T
+
+
+def find_ellipses(arcs: Arcs, image_size: tuple[int, int], *, tol_px: float = 1.5,
+                  n_seeds: int = 24, n_eval: int = 64, max_ellipses: int = 8,
+                  min_coverage: float = 0.2, min_axis_px: float = 4.0,
+                  min_aspect: float = 0.08) -> list[ArcEllipse]:
+    """Ellipses made of several arcs, best supported first (RANSAC over arcs).
+
+    Hypotheses are the fits of each of the ``n_seeds`` longest arcs and of each
+    pair of them; the ``n_eval`` longest arcs vote. An arc supports a conic when
+    80 % of its samples lie within ``tol_px`` (Sampson). An ellipse is kept when
+    at least two arcs covering ``min_coverage`` of its perimeter support it.
+    """
+    w, h = image_size
+    n_arcs = len(arcs.length)
+    if n_arcs < 2:
+        return []
+    order = np.argsort(-arcs.length, kind="stable")
+    ev = order[:n_eval]
+    seeds = order[:n_seeds]
+    i, j = np.triu_indices(len(seeds), k=0)
+    S = arcs.scatter[seeds[i]] + np.where((i != j)[:, None, None], arcs.scatter[seeds[j]], 0.0)
+    Q, ok = fit_scatter(S)
+    C = to_pixels(Q[ok], arcs.norm)
+    C = C[_plausible(C, w, h, min_axis_px, min_aspect)]
+    if len(C) == 0:
+        return []
+    support = _support(C, arcs, ev, tol_px)  # (H, E) bool
+    lengths = arcs.length[ev].astype(np.float64)
+    avail = np.ones(len(ev), bool)
+    found: list[ArcEllipse] = []
+    for _ in range(max_ellipses):
+        score = support.astype(np.float64) @ (lengths * avail)
+        best = int(np.argmax(score))
+        if score[best] <= 0:
+            break
+        members = support[best] & avail
+        conic = C[best]
+        for _ in range(2):  # refit on the supporting arcs, collect again
+            Qr, okr = fit_scatter(arcs.scatter[ev[members]].sum(axis=0)[None])
+            if not okr[0]:
+                break
+            Cr = to_pixels(Qr, arcs.norm)
+            if not _plausible(Cr, w, h, min_axis_px, min_aspect)[0]:
+                break
+            conic = Cr[0]
+            members = _support(Cr, arcs, ev, tol_px)[0] & avail
+        a, b, _ = _axes(conic[None])
+        perimeter = np.pi * (3 * (a[0] + b[0]) - np.sqrt((3 * a[0] + b[0]) * (a[0] + 3 * b[0])))
+        cov = float(lengths[members].sum() / perimeter) if np.isfinite(perimeter) else 0.0
+        avail &= ~(members | support[best])
+        if np.count_nonzero(members) >= 2 and cov >= min_coverage:
+            found.append(ArcEllipse(conic=conic, arc_ids=ev[members], support_px=float(lengths[members].sum()),
+                                    coverage=cov))
+        if not avail.any():
+            break
+    return found
+
+
+def _plausible(C: np.ndarray, w: int, h: int, min_axis_px: float, min_aspect: float) -> np.ndarray:
+    a, b, c = _axes(C)
+    diag = np.hypot(w, h)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(a) & (b >= min_axis_px) & (a <= 1.5 * diag) & (b >= min_aspect * a)
+        ok &= (c[:, 0] > -0.5 * w) & (c[:, 0] < 1.5 * w) & (c[:, 1] > -0.5 * h) & (c[:, 1] < 1.5 * h)
+    return ok
+
+
+def _support(C: np.ndarray, arcs: Arcs, ev: np.ndarray, tol_px: float) -> np.ndarray:
+    q = arcs.samples_px.shape[1]
+    d = sampson_batch(C, arcs.samples_px[ev].reshape(-1, 2)).reshape(len(C), len(ev), q)
+    return np.mean(d < tol_px, axis=2) >= 0.8

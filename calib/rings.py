@@ -1,0 +1,284 @@
+"""Detect the printed two-ring target in a photo: sub-pixel edges of both strokes.
+
+Pipeline (``detect_rings``):
+
+1. Coarse search on the image area-downsampled to about 640 px: Canny arcs,
+   RANSAC over arcs into ellipses (``calib.arcs``).
+2. Strokes: ellipses that are the two edges of one printed stroke (concentric,
+   radius ratio near 1) are merged; each remaining ellipse is a ring candidate.
+3. The pair: two candidates whose conics ``C_o``, ``C_i`` belong to concentric
+   circles with the target's radius ratio. For concentric circles the pencil
+   ``inv(C_i) C_o`` has eigenvalues ``(s, s, s (R_o / R_i)^2)``: the split of the
+   double eigenvalue measures non-concentricity, the distinct / double ratio the
+   squared radius ratio, both projectively (no camera needed).
+4. Fine search at full resolution along the normals of the predicted strokes
+   (``calib.edges``), twice: first from the coarse conics (the pencil predicts
+   the edge conics of radii ``R -+ w/2``), then from the conics fitted to the
+   first pass. Robust conic fits drop far outliers (Sampson > 3 px).
+
+The edge conic of any radius ``r`` follows from the two centre-line conics
+scaled alike (``C_o / s``): ``C(r) = a C_o / s + (1 - a) C_i`` with
+``a = (r^2 - R_i^2) / (R_o^2 - R_i^2)``.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+
+from .arcs import extract_arcs, find_ellipses
+from .conics import conic_center, conic_to_ellipse, fit_conic, normalize_conic, sampson_distance
+from .edges import conic_samples, find_stroke_edges, line_conic_offsets
+from .target import TargetSpec
+from .types import CalibrationError, EdgePoints, TargetObservation
+
+__all__ = ["detect_rings", "pencil_ratio", "edge_conic", "COARSE_SIZE_PX"]
+
+log = logging.getLogger(__name__)
+
+COARSE_SIZE_PX = 640        # long side of the coarse search image
+CONCENTRIC_TOL = 0.12       # max relative split of the pencil's double eigenvalue
+RATIO_TOL = 0.04            # relative tolerance on the radius ratio (coarse: + stroke)
+MAX_OUTLIER_PX = 3.0        # Sampson distance beyond which an edge point is dropped
+MIN_EDGE_POINTS = 30
+
+
+def pencil_ratio(C_big: np.ndarray, C_small: np.ndarray) -> tuple[float, float, float]:
+    """Concentricity and radius ratio of two image conics of coplanar circles.
+
+    Returns ``(split, ratio, s)``: ``split`` is the relative gap of the closest
+    pair of eigenvalues of ``inv(C_small) C_big`` (0 for concentric circles),
+    ``ratio`` the square root of distinct / double eigenvalue (the radius ratio
+    ``R_big / R_small``), ``s`` the double eigenvalue (the relative scale of the
+    two conics).
+    """
+    ev = np.linalg.eigvals(np.linalg.solve(C_small, C_big))
+    pairs = [(0, 1, 2), (0, 2, 1), (1, 2, 0)]
+    gaps = [abs(ev[i] - ev[j]) / max(abs(ev[i]), abs(ev[j]), 1e-300) for i, j, _ in pairs]
+    i, j, k = pairs[int(np.argmin(gaps))]
+    s = 0.5 * (ev[i] + ev[j])
+    ratio = float(np.sqrt(abs(ev[k] / s))) if abs(s) > 0 else float("inf")
+    return float(min(gaps)), ratio, float(np.real(s))
+
+
+def edge_conic(C_outer: np.ndarray, C_inner: np.ndarray, spec: TargetSpec, radius_mm: float) -> np.ndarray:
+    """Predicted image conic of the table circle of ``radius_mm`` (normalised).
+
+    ``C_outer``/``C_inner`` are the centre-line conics of the rings of radii
+    ``spec.r_outer_mm``/``spec.r_inner_mm`` (module docstring).
+    """
+    _, _, s = pencil_ratio(C_outer, C_inner)
+    ro2, ri2 = spec.r_outer_mm ** 2, spec.r_inner_mm ** 2
+    a = (radius_mm ** 2 - ri2) / (ro2 - ri2)
+    return normalize_conic(a * C_outer / s + (1.0 - a) * C_inner)
+
+
+def _grey(image) -> np.ndarray:
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        raise ValueError(f"image: expected uint8, got {img.dtype}")
+    if img.ndim == 3 and img.shape[2] == 3:
+        return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    if img.ndim == 2:
+        return np.ascontiguousarray(img)
+    raise ValueError(f"image: expected (H, W) or (H, W, 3), got {img.shape}")
+
+
+def _coarse_ellipses(grey: np.ndarray) -> tuple[list[np.ndarray], list[float]]:
+    """Ellipse conics (full-resolution pixels) found by the coarse search, and their support."""
+    h, w = grey.shape
+    f = max(1, int(round(max(h, w) / COARSE_SIZE_PX)))
+    if f > 1:
+        small = cv2.resize(grey[: h // f * f, : w // f * f], (w // f, h // f), interpolation=cv2.INTER_AREA)
+    else:
+        small = grey
+    arcs = extract_arcs(small)
+    ells = find_ellipses(arcs, (small.shape[1], small.shape[0]))
+    # small pixel centre i <-> full f i + (f - 1) / 2
+    A = np.array([[1.0 / f, 0, -(f - 1) / (2.0 * f)], [0, 1.0 / f, -(f - 1) / (2.0 * f)], [0, 0, 1.0]])
+    return [normalize_conic(A.T @ e.conic @ A) for e in ells], [e.support_px * f for e in ells]
+
+
+def _strokes(conics: list[np.ndarray], support: list[float], spec: TargetSpec) -> list[tuple[np.ndarray, float]]:
+    """Merge ellipses that are the two edges of one stroke; (conic, support) per stroke."""
+    same_max = (spec.r_inner_mm + spec.stroke_mm / 2) / (spec.r_inner_mm - spec.stroke_mm / 2)
+    same_max = 1.0 + 1.5 * (same_max - 1.0) + 0.01
+    order = np.argsort(support)[::-1]
+    out: list[list] = []
+    for k in order:
+        C = conics[k]
+        e = conic_to_ellipse(C)
+        for group in out:
+            g = group[0]
+            near = np.linalg.norm(e.center_px - g.center_px) <= 1.0 + 0.1 * min(e.b, g.b)
+            if near and max(e.a, g.a) / min(e.a, g.a) < same_max and max(e.b, g.b) / min(e.b, g.b) < same_max:
+                group[1].append((C, support[k]))
+                break
+        else:
+            out.append([e, [(C, support[k])]])
+    merged = []
+    for _, members in out:
+        wsum = sum(s for _, s in members)
+        C = sum(s * normalize_conic(c) for c, s in members) / wsum
+        merged.append((normalize_conic(C), wsum))
+    return merged
+
+
+def _area(C: np.ndarray) -> float:
+    e = conic_to_ellipse(C)
+    return e.a * e.b
+
+
+def _centre_distance(C1: np.ndarray, C2: np.ndarray) -> float:
+    return float(np.linalg.norm(conic_center(C1) - conic_center(C2)))
+
+
+def _choose_pair(rings: list[tuple[np.ndarray, float]], spec: TargetSpec) -> tuple[np.ndarray, np.ndarray]:
+    """The (outer, inner) centre-line conics; CalibrationError saying why none fits."""
+    if not rings:
+        raise CalibrationError("no ring found")
+    if len(rings) == 1:
+        c = conic_center(rings[0][0])
+        raise CalibrationError(f"inner ring not found: only one ring-like ellipse, centre ({c[0]:.0f}, {c[1]:.0f}) px")
+    hw = spec.stroke_mm / 2
+    r_lo = (spec.r_outer_mm - hw) / (spec.r_inner_mm + hw) * (1 - RATIO_TOL)
+    r_hi = (spec.r_outer_mm + hw) / (spec.r_inner_mm - hw) * (1 + RATIO_TOL)
+    best, concentric = None, None
+    closest = None
+    for i in range(len(rings)):
+        for j in range(i + 1, len(rings)):
+            (Ci, si), (Cj, sj) = rings[i], rings[j]
+            big, small = (Ci, Cj) if _area(Ci) >= _area(Cj) else (Cj, Ci)
+            split, ratio, _ = pencil_ratio(big, small)
+            score = si + sj
+            if closest is None or score > closest[0]:
+                closest = (score, _centre_distance(big, small))
+            if split >= CONCENTRIC_TOL:
+                continue
+            if concentric is None or score > concentric[0]:
+                concentric = (score, ratio)
+            if r_lo <= ratio <= r_hi and (best is None or score > best[0]):
+                best = (score, big, small)
+    if best is not None:
+        return best[1], best[2]
+    if concentric is not None:
+        raise CalibrationError(f"radius ratio {concentric[1]:.2f} does not match the target's {spec.radius_ratio:.2f}")
+    raise CalibrationError(f"rings not concentric (centres {closest[1]:.0f} px apart)")
+
+
+def _robust_fit(uv_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Conic of ``uv_px`` (N, 2) refitted without outliers; (conic, inlier mask)."""
+    keep = np.ones(len(uv_px), bool)
+    C = fit_conic(uv_px)
+    for _ in range(3):
+        d = np.abs(sampson_distance(C, uv_px))
+        sigma = 1.4826 * float(np.median(d[keep]))
+        thr = min(MAX_OUTLIER_PX, max(4.0 * sigma, 0.5))
+        new = d < thr
+        if new.sum() < 5:
+            break
+        if np.array_equal(new, keep):
+            keep = new
+            break
+        keep = new
+        C = fit_conic(uv_px[keep])
+    return C, keep
+
+
+def _search(gf, centre_conic, C_in, C_out, margin_px, gap_px):
+    uv, nrm = conic_samples(centre_conic, spacing_px=1.5)
+    s_in = line_conic_offsets(C_in, uv, nrm)
+    s_out = line_conic_offsets(C_out, uv, nrm)
+    return find_stroke_edges(gf, uv, nrm, s_in, s_out, margin_px, gap_px=gap_px)
+
+
+def _fit_ring(found, name: str):
+    """Robust conics of a stroke's two edges and of its centre line (midpoints)."""
+    ok = found.ok
+    if np.count_nonzero(ok) < MIN_EDGE_POINTS:
+        raise CalibrationError(f"{name} ring not found: only {np.count_nonzero(ok)} stroke profiles")
+    try:
+        C_in, k_in = _robust_fit(found.inner_uv_px[ok])
+        C_out, k_out = _robust_fit(found.outer_uv_px[ok])
+        mid = 0.5 * (found.inner_uv_px[ok] + found.outer_uv_px[ok])
+        C_mid, _ = _robust_fit(mid[k_in & k_out])
+    except ValueError as exc:
+        raise CalibrationError(f"{name} ring not found: {exc}") from exc
+    return C_in, C_out, C_mid, found.inner_uv_px[ok][k_in], found.outer_uv_px[ok][k_out]
+
+
+def detect_rings(image, spec: TargetSpec, *, principal_point_px=None) -> TargetObservation:
+    """Find the two printed rings and return sub-pixel points on both edges of each.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) uint8
+        Grey or BGR photo (as ``cv2.imread`` gives).
+    spec : TargetSpec
+        Radii and stroke width of the printed target, mm.
+    principal_point_px : (2,) array_like, optional
+        Not needed by the detector (the pencil tests are projective); accepted so
+        that callers can pass their intrinsics uniformly.
+
+    Returns
+    -------
+    TargetObservation
+        ``edges``: four ``EdgePoints`` (outer ring side +1 and -1, inner ring
+        side +1 and -1), points in pixels, outliers removed; ``conics``:
+        normalised pixel conics ``"outer"``, ``"inner"`` (centre lines) and
+        ``"outer+"``, ``"outer-"``, ``"inner+"``, ``"inner-"`` (edges).
+
+    Raises
+    ------
+    CalibrationError
+        "no ring found", "inner ring not found ...", "rings not concentric
+        (centres N px apart)", "radius ratio X does not match the target's Y", ...
+    ValueError
+        For an image that is not uint8 (H, W) or (H, W, 3).
+    """
+    grey = _grey(image)
+    h, w = grey.shape
+    conics, support = _coarse_ellipses(grey)
+    rings = _strokes(conics, support, spec)
+    Co, Ci = _choose_pair(rings, spec)
+    gf = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), 0.7)
+    hw = spec.stroke_mm / 2
+    radii = {"outer": spec.r_outer_mm, "inner": spec.r_inner_mm}
+    # pass 1: from the coarse conics through the pencil
+    pred = {}
+    for name, R in radii.items():
+        C_mid = edge_conic(Co, Ci, spec, R)
+        C_in, C_out = edge_conic(Co, Ci, spec, R - hw), edge_conic(Co, Ci, spec, R + hw)
+        pred[name] = (C_mid, C_in, C_out)
+    fits = {}
+    for name in radii:
+        C_mid, C_in, C_out = pred[name]
+        w_px = _median_width(C_mid, C_in, C_out)
+        found = _search(gf, C_mid, C_in, C_out, 2.5 + 0.5 * w_px, gap_px=2.0 + w_px)
+        fits[name] = _fit_ring(found, name)
+    # pass 2: from the fitted edges
+    for name in radii:
+        C_in, C_out, C_mid = fits[name][:3]
+        w_px = _median_width(C_mid, C_in, C_out)
+        found = _search(gf, C_mid, C_in, C_out, 1.5 + 0.25 * w_px, gap_px=2.0 + w_px)
+        fits[name] = _fit_ring(found, name)
+    split, ratio, _ = pencil_ratio(fits["outer"][2], fits["inner"][2])
+    if abs(ratio / spec.radius_ratio - 1.0) > RATIO_TOL:
+        raise CalibrationError(f"radius ratio {ratio:.2f} does not match the target's {spec.radius_ratio:.2f}")
+    edges, out_conics = [], {}
+    for name, R in radii.items():
+        C_in, C_out, C_mid, uv_in, uv_out = fits[name]
+        edges += [EdgePoints(uv_out, R, +1), EdgePoints(uv_in, R, -1)]
+        out_conics.update({name: C_mid, name + "+": C_out, name + "-": C_in})
+    log.debug("rings: %d/%d/%d/%d edge points, ratio %.4f, split %.2e",
+              *(len(e.uv_px) for e in edges), ratio, split)
+    return TargetObservation(edges=tuple(edges), width=w, height=h, conics=out_conics)
+
+
+def _median_width(C_mid, C_in, C_out) -> float:
+    uv, nrm = conic_samples(C_mid, spacing_px=20.0, max_samples=64)
+    wd = line_conic_offsets(C_out, uv, nrm) - line_conic_offsets(C_in, uv, nrm)
+    wd = wd[np.isfinite(wd)]
+    return float(np.median(wd)) if len(wd) else 2.0
