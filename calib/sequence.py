@@ -1,0 +1,842 @@
+"""Calibrating a whole sequence: shared intrinsics, and one turntable or one pose per frame.
+
+Two models, both fitted by maximum likelihood over every frame's ring edge points
+(residual: the Sampson distance, pixels, of each *undistorted* edge point from the
+projected edge circle of radius ``R + side * w / 2``, ``w`` the shared stroke width):
+
+* **turntable** (fixed camera, the table turns)::
+
+      T_cam_table_k = T_cam_axis . RotY(theta_k) . Trans(d_x, 0, d_z)
+
+  ``T_cam_axis`` (6 dof) is the camera relative to the turntable axis (axis frame:
+  origin where the axis meets the table plane, +Y along the axis), ``d`` (2) the
+  printed pattern's offset from the axis (nobody centres the paper exactly),
+  ``theta_k`` the turntable angle of frame k (free, or ``k * step_deg`` for a
+  motorised table). The rings are symmetric about their centre, so they do not see
+  ``theta_k`` (only weakly, through ``d``); the angle marks do. Each frame whose
+  marks were read adds one residual: the rotation about the normal between the
+  model's pose and the marks-aligned single-view pose, divided by the reading's
+  standard deviation and multiplied by the edge noise (so both kinds are whitened
+  alike).
+* **handheld** (the camera moves): per-frame normal (2 dof: the rings do not see the
+  rotation about it, which the marks set) and centre (3).
+
+Intrinsics: ``f`` always (unless given), the principal point and radial distortion
+``k1, k2`` (OpenCV's model, :mod:`calib.distortion`) when the views constrain them.
+With a fixed camera every frame sees the same table plane from the same direction,
+so every frame images the same circular points and the principal point is
+unobservable (the paper's single-view limitation, not lifted by turning the
+table): it stays at the image centre, and the result's ``meta`` says so. Otherwise
+(tilts differ) they are estimated, and refused -- kept at their defaults, ``meta``
+says why -- when their standard deviation from the Jacobian (``cov = s^2 (J^T J)^-1``)
+exceeds :data:`MAX_STD`.
+
+Sign of the turntable angle: ``angle_deg`` in the result is the rotation of the
+table frame about +Y from the reference (first calibrated) frame, right-handed
+(``TURN_SIGN``); frames are compared with ground truth modulo one common offset.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, replace
+from typing import Callable, Sequence
+
+import numpy as np
+
+from .camera import camera_centre_table, make_T
+from .distortion import undistort_px
+from .refine import edge_residuals
+from .target import TargetSpec
+from .types import (CalibrationError, EdgePoints, FramePose, Intrinsics, SequenceCalibration,
+                    TargetObservation, image_centre)
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "calibrate_sequence",
+    "AngleReader",
+    "marks_angle_reader",
+    "rot_y",
+    "MAX_STD",
+    "TURN_SIGN",
+]
+
+#: Largest 1-sigma accepted for an optional intrinsic parameter; beyond it the
+#: views do not constrain it and it is kept at its default.
+MAX_STD = {"cx": 1.0, "cy": 1.0, "k1": 0.004, "k2": 0.02}
+#: angle_deg = TURN_SIGN * degrees(theta) with T_cam_table = T_cam_axis . RotY(theta) . Trans(d).
+TURN_SIGN = 1.0
+#: |marks - step| beyond this (deg) is reported per frame.
+ANGLE_CHECK_DEG = 1.0
+#: turntable model accepted when its RMS is within this factor (+0.05 px) of the single-view fits'.
+MODE_RMS_RATIO = 1.3
+#: turntable model considered when the camera centres fit one circle within this fraction of the distance.
+MODE_CENTRE_TOL = 0.02
+
+#: ``reader(frame_index, K, T_cam_table) -> (T_cam_table_aligned, std_deg)``: the pose rotated about
+#: the table normal so that table +X points at the printed 0 deg mark; raises CalibrationError.
+AngleReader = Callable[[int, np.ndarray, np.ndarray], tuple[np.ndarray, float]]
+
+
+# --------------------------------------------------------------------------- small geometry
+def rot_y(theta: float) -> np.ndarray:
+    """Right-handed rotation (3, 3) by ``theta`` radians about +Y."""
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def _exp_so3(w: np.ndarray) -> np.ndarray:
+    th = float(np.linalg.norm(w))
+    W = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if th < 1e-12:
+        return np.eye(3) + W
+    return np.eye(3) + math.sin(th) / th * W + (1.0 - math.cos(th)) / th**2 * (W @ W)
+
+
+def _yaw_of(R: np.ndarray) -> float:
+    """Angle (rad) of the rotation about +Y closest to ``R`` (3, 3)."""
+    return math.atan2(R[0, 2] - R[2, 0], R[0, 0] + R[2, 2])
+
+
+def _project_rotation(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    return R
+
+
+def _wrap(a: np.ndarray | float):
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+# --------------------------------------------------------------------------- edge data
+@dataclass(frozen=True)
+class _FrameEdges:
+    """Edge points of one frame, packed for vectorised residuals."""
+
+    uv_px: np.ndarray  # (N, 2) raw (distorted) pixels
+    groups: tuple  # ((slice, ring_radius_mm, side), ...)
+
+    @classmethod
+    def from_observation(cls, obs: TargetObservation, max_per_edge: int) -> "_FrameEdges":
+        uvs, groups, n = [], [], 0
+        for e in obs.edges:
+            uv = e.uv_px
+            if len(uv) < 5:
+                continue
+            if len(uv) > max_per_edge:
+                uv = uv[np.linspace(0, len(uv) - 1, max_per_edge).round().astype(int)]
+            uvs.append(uv)
+            groups.append((slice(n, n + len(uv)), float(e.ring_radius_mm), int(e.side)))
+            n += len(uv)
+        if not uvs:
+            raise CalibrationError("no edge points")
+        return cls(np.concatenate(uvs), tuple(groups))
+
+    def select(self, keep: np.ndarray) -> "_FrameEdges":
+        uvs, groups, n = [], [], 0
+        for sl, r, side in self.groups:
+            uv = self.uv_px[sl][keep[sl]]
+            if len(uv) < 5:
+                continue
+            uvs.append(uv)
+            groups.append((slice(n, n + len(uv)), r, side))
+            n += len(uv)
+        return _FrameEdges(np.concatenate(uvs), tuple(groups))
+
+    @property
+    def has_stroke(self) -> bool:
+        return any(side != 0 for _, _, side in self.groups)
+
+
+def _edge_residuals(K: np.ndarray, dist: np.ndarray, T_cam_table: np.ndarray, stroke_mm: float,
+                    fe: _FrameEdges) -> np.ndarray:
+    """Distances (N,) px of ``fe``'s undistorted points from their projected edge circles.
+
+    The single-view residual of :func:`calib.refine.edge_residuals`, on points
+    undistorted with the current ``K, dist``.
+    """
+    uv = undistort_px(fe.uv_px, K, dist) if np.any(dist) else fe.uv_px
+    edges = tuple(EdgePoints(uv[sl], r, side) for sl, r, side in fe.groups)
+    return edge_residuals(K, T_cam_table, stroke_mm, edges)
+
+
+# --------------------------------------------------------------------------- the problem
+_INTR_NAMES = ("f", "cx", "cy", "k1", "k2")
+
+
+@dataclass
+class _State:
+    """Everything the joint fit estimates (plain arrays; internal)."""
+
+    K: np.ndarray
+    dist: np.ndarray  # (5,)
+    stroke: float
+    # turntable
+    R_cam_axis: np.ndarray | None = None
+    t_cam_axis: np.ndarray | None = None
+    d_xz: np.ndarray | None = None
+    theta: np.ndarray | None = None  # (n_frames,) rad
+    # handheld
+    R: list | None = None  # per-frame (3, 3)
+    t: list | None = None  # per-frame (3,)
+
+    def poses(self) -> list[np.ndarray]:
+        if self.R is not None:
+            return [make_T(R, t) for R, t in zip(self.R, self.t)]
+        Ts = []
+        for th in self.theta:
+            R = self.R_cam_axis @ rot_y(th)
+            Ts.append(make_T(R, R @ np.array([self.d_xz[0], 0.0, self.d_xz[1]]) + self.t_cam_axis))
+        return Ts
+
+
+class _Problem:
+    """Parameter packing, residuals and a block-sparse finite-difference Jacobian.
+
+    Global parameters (free intrinsics, stroke, turntable geometry) touch every
+    frame; local ones (theta_k, or a handheld frame's 5) touch one frame, so
+    the Jacobian costs (n_global + n_local_per_frame) residual evaluations.
+    """
+
+    def __init__(self, frames: list[_FrameEdges], state: _State, free_intr: tuple[str, ...],
+                 free_stroke: bool, model: str, free_theta: np.ndarray | None = None,
+                 free_yaw: bool = True, mark_R: list | None = None, mark_w: np.ndarray | None = None):
+        self.frames, self.s0, self.model = frames, state, model
+        self.free_intr, self.free_stroke = free_intr, free_stroke
+        self.free_theta = free_theta if free_theta is not None else np.zeros(len(frames), bool)
+        self.free_yaw = free_yaw
+        self.mark_R = mark_R or [None] * len(frames)
+        self.mark_w = mark_w if mark_w is not None else np.zeros(len(frames))
+        n_g = len(free_intr) + int(free_stroke)
+        if model == "turntable":
+            n_g += 2 + int(free_yaw) + 3 + 2
+            self.n_local = self.free_theta.astype(int)
+        else:
+            self.n_local = np.full(len(frames), 5)
+        self.n_global = n_g
+        self.local_start = n_g + np.concatenate([[0], np.cumsum(self.n_local)[:-1]]).astype(int)
+        self.n_params = n_g + int(self.n_local.sum())
+        self.n_edge = np.array([len(f.uv_px) for f in frames])
+        self.row_start = np.concatenate([[0], np.cumsum(self.n_edge)]).astype(int)
+        self.has_mark = np.array([m is not None and w > 0 for m, w in zip(self.mark_R, self.mark_w)])
+        self.n_rows = int(self.row_start[-1] + self.has_mark.sum())
+
+    # -- packing ------------------------------------------------------------
+    def unpack(self, x: np.ndarray) -> _State:
+        s0, i = self.s0, 0
+        K, dist = s0.K.copy(), s0.dist.copy()
+        for name in self.free_intr:
+            if name == "f":
+                K[0, 0] = K[1, 1] = s0.K[0, 0] * (1.0 + x[i])
+            elif name in ("cx", "cy"):
+                j = 0 if name == "cx" else 1
+                K[j, 2] = s0.K[j, 2] + x[i]
+            else:
+                j = 0 if name == "k1" else 1
+                dist[j] = s0.dist[j] + x[i]
+            i += 1
+        stroke = s0.stroke
+        if self.free_stroke:
+            stroke = s0.stroke + x[i]
+            i += 1
+        st = _State(K=K, dist=dist, stroke=stroke)
+        if self.model == "turntable":
+            R0 = s0.R_cam_axis
+            w = x[i] * R0[:, 0] + x[i + 1] * R0[:, 2]
+            i += 2
+            if self.free_yaw:
+                w = w + x[i] * R0[:, 1]
+                i += 1
+            st.R_cam_axis = _exp_so3(w) @ R0
+            st.t_cam_axis = s0.t_cam_axis + x[i:i + 3]
+            st.d_xz = s0.d_xz + x[i + 3:i + 5]
+            theta = s0.theta.copy()
+            idx = np.flatnonzero(self.free_theta)
+            theta[idx] += x[self.local_start[idx]]
+            st.theta = theta
+        else:
+            st.R, st.t = [], []
+            for k in range(len(self.frames)):
+                j = self.local_start[k]
+                st.R.append(s0.R[k] @ _exp_so3(np.array([x[j], 0.0, x[j + 1]])))
+                st.t.append(s0.t[k] + x[j + 2:j + 5])
+        return st
+
+    # -- residuals ----------------------------------------------------------
+    def _mark_residual(self, k: int, R_model: np.ndarray) -> float:
+        return self.mark_w[k] * _yaw_of(R_model.T @ self.mark_R[k])
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        st = self.unpack(x)
+        Ts = st.poses()
+        out = np.empty(self.n_rows)
+        for k, fe in enumerate(self.frames):
+            out[self.row_start[k]:self.row_start[k + 1]] = _edge_residuals(st.K, st.dist, Ts[k], st.stroke, fe)
+        m = self.row_start[-1]
+        for k in np.flatnonzero(self.has_mark):
+            out[m] = self._mark_residual(k, Ts[k][:3, :3])
+            m += 1
+        return out
+
+    def _frame_rows(self, st: _State, T: np.ndarray, k: int) -> tuple[np.ndarray, float | None]:
+        r = _edge_residuals(st.K, st.dist, T, st.stroke, self.frames[k])
+        return r, (self._mark_residual(k, T[:3, :3]) if self.has_mark[k] else None)
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        J = np.zeros((self.n_rows, self.n_params))
+        r0 = self.residuals(x)
+        mark_row = np.full(len(self.frames), -1)
+        mark_row[self.has_mark] = self.row_start[-1] + np.arange(self.has_mark.sum())
+        for j in range(self.n_global):
+            h = 1e-6 * max(1.0, abs(x[j]))
+            xp = x.copy()
+            xp[j] += h
+            J[:, j] = (self.residuals(xp) - r0) / h
+        for k in range(len(self.frames)):
+            rows = slice(self.row_start[k], self.row_start[k + 1])
+            for c in range(self.n_local[k]):
+                j = self.local_start[k] + c
+                h = 1e-6 * max(1.0, abs(x[j]))
+                xp = x.copy()
+                xp[j] += h
+                st = self.unpack(xp)
+                T = self._pose_k(st, k)
+                r, m = self._frame_rows(st, T, k)
+                J[rows, j] = (r - r0[rows]) / h
+                if m is not None:
+                    J[mark_row[k], j] = (m - r0[mark_row[k]]) / h
+        return J
+
+    @staticmethod
+    def _pose_k(st: _State, k: int) -> np.ndarray:
+        if st.R is not None:
+            return make_T(st.R[k], st.t[k])
+        R = st.R_cam_axis @ rot_y(st.theta[k])
+        return make_T(R, R @ np.array([st.d_xz[0], 0.0, st.d_xz[1]]) + st.t_cam_axis)
+
+    def edge_rms_per_frame(self, r: np.ndarray) -> np.ndarray:
+        return np.array([np.sqrt(np.mean(r[self.row_start[k]:self.row_start[k + 1]] ** 2))
+                         for k in range(len(self.frames))])
+
+
+@dataclass(frozen=True)
+class _Fit:
+    state: _State
+    std: dict  # parameter name -> 1 sigma (intrinsics, stroke)
+    rms_px: float
+    rms_per_frame: np.ndarray
+    residuals: np.ndarray
+    problem: _Problem
+
+
+def _levenberg_marquardt(fun, jac, x0: np.ndarray, robust_px: float | None, max_iter: int = 40) -> np.ndarray:
+    """Minimise ``sum rho(r_i^2)`` by Levenberg-Marquardt on the normal equations.
+
+    ``robust_px``: soft-L1 loss of that scale (iteratively reweighted), else L2.
+    The parameters are few (tens) and the rows many, so ``J^T J`` is solved
+    directly instead of factoring ``J``.
+    """
+
+    def cost_of(r):
+        if robust_px is None:
+            return float(r @ r)
+        z = (r / robust_px) ** 2
+        return float(np.sum(2.0 * (np.sqrt(1.0 + z) - 1.0))) * robust_px**2
+
+    x = x0.copy()
+    r = fun(x)
+    cost = cost_of(r)
+    lam = 1e-3
+    for _ in range(max_iter):
+        J = jac(x)
+        w = np.ones_like(r) if robust_px is None else 1.0 / np.sqrt(np.sqrt(1.0 + (r / robust_px) ** 2))
+        Jw = J * w[:, None]
+        A = Jw.T @ Jw
+        g = Jw.T @ (w * r)
+        D = np.maximum(np.diag(A), 1e-12 * max(np.max(np.diag(A)), 1e-300))
+        improved = False
+        for _ in range(12):
+            try:
+                dx = -np.linalg.solve(A + lam * np.diag(D), g)
+            except np.linalg.LinAlgError:
+                lam *= 10.0
+                continue
+            r_new = fun(x + dx)
+            c_new = cost_of(r_new)
+            if c_new < cost:
+                improved = True
+                break
+            lam *= 10.0
+        if not improved:
+            break
+        rel = (cost - c_new) / max(cost, 1e-300)
+        x, r, cost = x + dx, r_new, c_new
+        lam = max(lam / 10.0, 1e-9)
+        if rel < 1e-10:
+            break
+    return x
+
+
+def _solve(problem: _Problem, robust: bool) -> _Fit:
+    x0 = np.zeros(problem.n_params)
+    x = _levenberg_marquardt(problem.residuals, problem.jacobian, x0, 1.0 if robust else None)
+    r = problem.residuals(x)
+    J = problem.jacobian(x)
+    n_e = int(problem.row_start[-1])
+    dof = max(len(r) - problem.n_params, 1)
+    s2 = float(r @ r) / dof
+    std = _param_std(J, s2)
+    names = list(problem.free_intr) + (["stroke"] if problem.free_stroke else [])
+    st = problem.unpack(x)
+    out = {}
+    for i, name in enumerate(names):
+        s = std[i]
+        if name == "f":
+            s *= problem.s0.K[0, 0]
+        out[name] = float(s)
+    return _Fit(state=st, std=out, rms_px=float(np.sqrt(np.mean(r[:n_e] ** 2))),
+                rms_per_frame=problem.edge_rms_per_frame(r), residuals=r, problem=problem)
+
+
+def _param_std(J: np.ndarray, s2: float) -> np.ndarray:
+    """1-sigma of each parameter from ``s2 (J^T J)^-1``; inf where singular."""
+    norms = np.linalg.norm(J, axis=0)
+    norms[norms == 0] = 1.0
+    Js = J / norms
+    M = Js.T @ Js
+    try:
+        w, V = np.linalg.eigh(M)
+    except np.linalg.LinAlgError:
+        return np.full(J.shape[1], np.inf)
+    if w[0] <= w[-1] * 1e-14:
+        w = np.where(w <= w[-1] * 1e-14, w[-1] * 1e-14, w)
+    cov_s = (V / w) @ V.T
+    return np.sqrt(np.maximum(np.diag(cov_s), 0.0) * s2) / norms
+
+
+def _fit(frames: list[_FrameEdges], state: _State, model: str, free_intr: tuple[str, ...], free_stroke: bool,
+         **kw) -> _Fit:
+    """Robust fit (soft L1, 1 px), drop edge points beyond 5 robust sigmas, final least squares."""
+    fit = _solve(_Problem(frames, state, free_intr, free_stroke, model, **kw), robust=True)
+    r = fit.residuals
+    n_e = int(fit.problem.row_start[-1])
+    sigma = 1.4826 * float(np.median(np.abs(r[:n_e])))
+    thr = max(5.0 * sigma, 0.5)
+    kept = []
+    for k, fe in enumerate(frames):
+        rk = r[fit.problem.row_start[k]:fit.problem.row_start[k + 1]]
+        keep = np.abs(rk) <= thr
+        kept.append(fe if keep.all() else fe.select(keep))
+    return _solve(_Problem(kept, fit.state, free_intr, free_stroke, model, **kw), robust=False)
+
+
+# --------------------------------------------------------------------------- initialisation
+def _init_turntable(Ts: list[np.ndarray], theta: np.ndarray, yaw_known: bool) -> tuple[np.ndarray, np.ndarray,
+                                                                                          np.ndarray, float]:
+    """``R_cam_axis, t_cam_axis, d_xz`` from single-view poses and angles; and the camera-centre fit RMS (mm).
+
+    With consistent yaws (marks) the camera centres in the table frame obey the
+    linear model ``c_k = RotY(theta_k)^T C - d`` (C: camera centre in the axis frame).
+    """
+    if yaw_known:
+        M = sum(T[:3, :3] @ rot_y(th).T for T, th in zip(Ts, theta))
+        R_ca = _project_rotation(M)
+        A = np.zeros((3 * len(Ts), 5))
+        b = np.zeros(3 * len(Ts))
+        for k, (T, th) in enumerate(zip(Ts, theta)):
+            A[3 * k:3 * k + 3, :3] = rot_y(th).T
+            A[3 * k, 3] = -1.0
+            A[3 * k + 2, 4] = -1.0
+            b[3 * k:3 * k + 3] = camera_centre_table(T)
+        sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+        C, d = sol[:3], sol[3:]
+        rms = float(np.sqrt(np.mean((A @ sol - b) ** 2) * 3))
+        return R_ca, -R_ca @ C, d, rms
+    from .camera import rotation_from_normal
+
+    n = np.mean([T[:3, 1] for T in Ts], axis=0)
+    R_ca = rotation_from_normal(n, x_hint_cam=Ts[0][:3, 0])
+    return R_ca, np.mean([T[:3, 3] for T in Ts], axis=0), np.zeros(2), float("nan")
+
+
+def _mark_weights(stds_deg: Sequence[float], noise_px: float) -> np.ndarray:
+    s = np.radians(np.maximum(np.asarray(stds_deg, float), 0.005))
+    return np.where(np.isfinite(s), max(noise_px, 0.05) / s, 0.0)
+
+
+# --------------------------------------------------------------------------- angle marks
+def marks_angle_reader(images: Sequence[np.ndarray | None], spec: TargetSpec) -> AngleReader:
+    """The default :data:`AngleReader`: ``calib.marks`` on ``images[k]``."""
+    from .marks import align_pose_to_marks, read_turntable_angle
+
+    def read(k: int, K: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, float]:
+        img = images[k]
+        if img is None:
+            raise CalibrationError("no image to read the angle marks from")
+        a = read_turntable_angle(img, K, T, spec)
+        return align_pose_to_marks(T, a.angle_deg), float(a.std_deg)
+
+    return read
+
+
+# --------------------------------------------------------------------------- per-frame stage
+@dataclass
+class _Single:
+    """One frame's single-view result (internal)."""
+
+    edges: _FrameEdges
+    T: np.ndarray  # single-view pose, yaw aligned to the marks when ``yaw_ok``
+    focal_px: float
+    rms_px: float
+    stroke_mm: float
+    yaw_ok: bool = False
+    angle_std_deg: float = float("nan")
+    angle_error: str = ""
+
+
+def _undistort_observation(obs: TargetObservation, intr: Intrinsics) -> TargetObservation:
+    edges = tuple(EdgePoints(undistort_px(e.uv_px, intr.K, intr.dist), e.ring_radius_mm, e.side)
+                  for e in obs.edges)
+    return replace(obs, edges=edges, conics={})
+
+
+def _single_view(obs: TargetObservation, spec: TargetSpec, pp, max_per_edge: int) -> _Single:
+    from .calibrate import calibrate_view
+
+    cal = calibrate_view(obs, spec, solver="refine", principal_point_px=pp)
+    stroke = float(cal.stroke_mm) if np.isfinite(cal.stroke_mm) else spec.stroke_mm
+    return _Single(edges=_FrameEdges.from_observation(obs, max_per_edge), T=np.asarray(cal.T_cam_table, float),
+                   focal_px=cal.intrinsics.focal_px, rms_px=float(cal.rms_px), stroke_mm=stroke)
+
+
+def _per_frame(observations, spec, intr, pp, reader, failures, max_per_edge, progress):
+    """Single-view calibration and mark reading of every frame: ``singles`` (None if failed), reasons."""
+    n = len(observations)
+    singles: list[_Single | None] = [None] * n
+    reasons = [""] * n
+    for k, obs in enumerate(observations):
+        if obs is None:
+            reasons[k] = (failures[k] if failures is not None and failures[k] else "target rings not found")
+        else:
+            try:
+                if intr is not None:
+                    obs = _undistort_observation(obs, intr)
+                s = _single_view(obs, spec, pp, max_per_edge)
+                if reader is not None:
+                    K = intr.K if intr is not None else Intrinsics.from_focal(
+                        s.focal_px, obs.width, obs.height, pp).K
+                    try:
+                        T, std = reader(k, K, s.T)
+                        s.T, s.yaw_ok, s.angle_std_deg = np.asarray(T, float), True, float(std)
+                    except CalibrationError as exc:
+                        s.angle_error = str(exc)
+                else:
+                    s.angle_error = "angle marks not read"
+                singles[k] = s
+            except CalibrationError as exc:
+                reasons[k] = str(exc)
+        if progress is not None:
+            progress(k + 1, n)
+    return singles, reasons
+
+
+# --------------------------------------------------------------------------- the models
+def _fit_turntable(singles, idx, state0, theta0, free_theta, yaw_known, free_intr, free_stroke, noise_px):
+    frames = [singles[k].edges for k in idx]
+    Ts = [singles[k].T for k in idx]
+    R_ca, t_ca, d, centre_rms = _init_turntable(Ts, theta0, yaw_known)
+    st = replace(state0, R_cam_axis=R_ca, t_cam_axis=t_ca, d_xz=d, theta=theta0.copy(), R=None, t=None)
+    mark_R = [singles[k].T[:3, :3] if singles[k].yaw_ok else None for k in idx]
+    mark_w = _mark_weights([singles[k].angle_std_deg if singles[k].yaw_ok else np.nan for k in idx], noise_px)
+    fit = _fit(frames, st, "turntable", free_intr, free_stroke, free_theta=free_theta, free_yaw=yaw_known,
+               mark_R=mark_R, mark_w=mark_w)
+    return fit, centre_rms
+
+
+def _fit_handheld(singles, idx, state0, free_intr, free_stroke):
+    frames = [singles[k].edges for k in idx]
+    st = replace(state0, R=[singles[k].T[:3, :3] for k in idx], t=[singles[k].T[:3, 3] for k in idx],
+                 R_cam_axis=None, t_cam_axis=None, d_xz=None, theta=None)
+    return _fit(frames, st, "handheld", free_intr, free_stroke)
+
+
+def _refit(fit: _Fit, free_intr: tuple[str, ...]) -> _Fit:
+    p = fit.problem
+    return _solve(_Problem(p.frames, fit.state, free_intr, p.free_stroke, p.model, free_theta=p.free_theta,
+                           free_yaw=p.free_yaw, mark_R=p.mark_R, mark_w=p.mark_w), robust=False)
+
+
+def _extend(fit: _Fit, base: tuple[str, ...], extra: tuple[str, ...], notes: dict) -> _Fit:
+    """Free ``extra`` intrinsics too; keep those the data constrain (std <= MAX_STD), refit."""
+    if not extra:
+        return fit
+    trial = _refit(fit, base + extra)
+    refused = [n for n in extra if not trial.std[n] <= MAX_STD[n]]
+    for n in extra:
+        if n in refused:
+            notes[n] = (f"not estimated: unconstrained by these views (1 sigma {trial.std[n]:.3g} > "
+                        f"{MAX_STD[n]:g}); kept at {'the image centre' if n in ('cx', 'cy') else '0'}")
+    if not refused:
+        return trial
+    keep = tuple(n for n in extra if n not in refused)
+    return _refit(fit, base + keep) if keep else fit
+
+
+def _choose_mode(mode, singles, ok, angled, rms_pooled, fit_tt, centre_rms, distance):
+    """'turntable' or 'handheld', and why."""
+    if mode != "auto":
+        return mode, f"--mode {mode}"
+    if len(ok) < 3:
+        return "handheld", f"only {len(ok)} calibrated frame(s): no turntable model"
+    if len(angled) < 3:
+        return "handheld", "turntable angles unknown (angle marks unreadable, no step given)"
+    if np.isfinite(centre_rms) and centre_rms > MODE_CENTRE_TOL * distance:
+        return "handheld", (f"camera centres do not lie on one circle about an axis "
+                            f"(RMS {centre_rms:.1f} mm at {distance:.0f} mm)")
+    if fit_tt is None:
+        return "handheld", "turntable fit failed"
+    if fit_tt.rms_px > MODE_RMS_RATIO * rms_pooled + 0.05:
+        return "handheld", (f"turntable model RMS {fit_tt.rms_px:.3f} px vs single views' "
+                            f"{rms_pooled:.3f} px")
+    return "turntable", (f"fixed camera: turntable model RMS {fit_tt.rms_px:.3f} px vs single views' "
+                         f"{rms_pooled:.3f} px, camera centres on one circle (RMS {centre_rms:.2f} mm)")
+
+
+# --------------------------------------------------------------------------- public entry point
+def calibrate_sequence(
+    observations: Sequence[TargetObservation | None],
+    images: Sequence[np.ndarray | None] | None,
+    spec: TargetSpec,
+    *,
+    names: Sequence[str] | None = None,
+    failures: Sequence[str] | None = None,
+    step_deg: float | None = None,
+    intrinsics: Intrinsics | None = None,
+    mode: str = "auto",
+    principal_point_px: tuple[float, float] | None = None,
+    distortion: str = "auto",
+    angle_reader: AngleReader | None = None,
+    max_points_per_edge: int = 150,
+    progress: Callable[[int, int], None] | None = None,
+) -> SequenceCalibration:
+    """Shared intrinsics and one pose per frame from a sequence of ring observations.
+
+    Parameters
+    ----------
+    observations : list of TargetObservation or None
+        Ring edges of each frame in turntable order (None where detection failed).
+    images : list of (H, W, 3) uint8 BGR or None, or None
+        The frames, for the angle marks (``calib.marks``); None: no marks.
+    spec : TargetSpec
+    names : list of str, optional
+        Frame names for the result (default ``frame_000``...).
+    failures : list of str, optional
+        Why each None observation failed (reported as its status).
+    step_deg : float, optional
+        Motorised table: frame k is at ``k * step_deg`` (marks, when read, are
+        checked against it; disagreements beyond ``ANGLE_CHECK_DEG`` go to ``meta``).
+    intrinsics : Intrinsics, optional
+        Known camera: edges are undistorted with it and ``K`` is kept.
+    mode : {"auto", "turntable", "handheld"}
+        Fixed camera and turning table, or a moving camera; "auto" decides from
+        the data (camera centres on one circle, joint RMS close to the single views').
+    principal_point_px : (2,), optional
+        Known principal point (not estimated then).
+    distortion : {"auto", "none"}
+        "auto": estimate k1, k2 where the views constrain them.
+    angle_reader : AngleReader, optional
+        Replaces reading the marks from ``images`` (tests, other targets).
+    max_points_per_edge : int
+        Edge points per edge kept (evenly) for the joint fit.
+    progress : callable(done, total), optional
+
+    Returns
+    -------
+    SequenceCalibration
+        ``mode`` as chosen, per-frame ``status`` ("ok" or the reason), and ``meta``
+        with uncertainties, what was not estimated and why, and angle checks.
+
+    Raises
+    ------
+    CalibrationError
+        When no frame can be calibrated (the message lists the reasons).
+    ValueError
+        For inconsistent arguments.
+    """
+    n = len(observations)
+    if mode not in ("auto", "turntable", "handheld"):
+        raise ValueError(f"mode must be auto, turntable or handheld, got {mode!r}")
+    if distortion not in ("auto", "none"):
+        raise ValueError(f"distortion must be auto or none, got {distortion!r}")
+    if images is not None and len(images) != n:
+        raise ValueError(f"{len(images)} images for {n} observations")
+    names = list(names) if names is not None else [f"frame_{k:03d}" for k in range(n)]
+    if len(names) != n:
+        raise ValueError(f"{len(names)} names for {n} observations")
+    if step_deg is not None and not (np.isfinite(step_deg) and step_deg != 0):
+        raise ValueError(f"step_deg must be a non-zero number, got {step_deg}")
+    if n == 0:
+        raise CalibrationError("no frames")
+    if angle_reader is None and images is not None:
+        angle_reader = marks_angle_reader(images, spec)
+    pp = tuple(intrinsics.principal_point_px) if intrinsics is not None else principal_point_px
+    singles, reasons = _per_frame(observations, spec, intrinsics, pp, angle_reader, failures,
+                                  max_points_per_edge, progress)
+    ok = [k for k in range(n) if singles[k] is not None]
+    if not ok:
+        summary = "; ".join(sorted({r for r in reasons if r}))
+        raise CalibrationError(f"no frame could be calibrated ({summary})")
+    obs0 = observations[ok[0]]
+    return _calibrate_from_singles(singles, reasons, ok, names, (obs0.width, obs0.height), spec, step_deg,
+                                   intrinsics, mode, pp, distortion)
+
+
+def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, intr, mode, pp, distortion):
+    n = len(singles)
+    W, H = size
+    have_step = step_deg is not None
+    angled = [k for k in ok if singles[k].yaw_ok or have_step]
+    rms_pooled = float(np.sqrt(np.mean([singles[k].rms_px ** 2 for k in ok])))
+    distance = float(np.median([np.linalg.norm(singles[k].T[:3, 3]) for k in ok]))
+    if intr is not None:
+        K0, base = intr.K.copy(), ()
+    else:
+        cx, cy = pp if pp is not None else image_centre(W, H)
+        f0 = float(np.median([singles[k].focal_px for k in ok]))
+        K0, base = np.array([[f0, 0.0, cx], [0.0, f0, cy], [0.0, 0.0, 1.0]]), ("f",)
+    free_stroke = any(singles[k].edges.has_stroke for k in ok)
+    stroke0 = float(np.median([singles[k].stroke_mm for k in ok])) if free_stroke else 0.0
+    state0 = _State(K=K0, dist=np.zeros(5), stroke=stroke0)
+    checks: list[dict] = []
+
+    fit_tt, centre_rms, theta_all = None, float("nan"), None
+    if mode == "turntable" and not angled:
+        raise CalibrationError("turntable mode needs the turntable angle of each frame: the angle marks "
+                               "could not be read in any frame and no step was given")
+    if mode == "turntable" or (mode == "auto" and len(angled) >= 3):
+        theta_all, free_theta, checks = _initial_angles(singles, angled, names, step_deg)
+        yaw_known = any(singles[k].yaw_ok for k in angled)
+        theta0 = np.array([theta_all[k] for k in angled])
+        try:
+            fit_tt, centre_rms = _fit_turntable(singles, angled, state0, theta0, free_theta, yaw_known, base,
+                                                free_stroke, rms_pooled)
+        except (np.linalg.LinAlgError, ValueError) as exc:
+            log.warning("turntable fit failed: %s", exc)
+    chosen, why = _choose_mode(mode, singles, ok, angled, rms_pooled, fit_tt, centre_rms, distance)
+    if chosen == "turntable":
+        if fit_tt is None:
+            raise CalibrationError("turntable model could not be fitted")
+        fit, used = fit_tt, angled
+    else:
+        fit, used = _fit_handheld(singles, ok, state0, base, free_stroke), ok
+
+    notes: dict[str, str] = {}
+    extra: list[str] = []
+    if intr is None:
+        if pp is not None:
+            notes["principal_point"] = "given"
+        elif chosen == "turntable":
+            notes["principal_point"] = ("not estimated: with a fixed camera every frame sees the table plane "
+                                        "from the same direction, so the principal point is unobservable; "
+                                        "kept at the image centre")
+        else:
+            extra += ["cx", "cy"]
+        if distortion == "auto":
+            extra += ["k1", "k2"]
+        else:
+            notes["distortion"] = "not estimated (distortion='none')"
+        fit = _extend(fit, base, tuple(extra), notes)
+    else:
+        notes["intrinsics"] = "given: edges undistorted with them, K kept"
+    return _result(fit, chosen, why, singles, reasons, ok, used, names, size, intr, notes, checks,
+                   rms_pooled, centre_rms)
+
+
+def _initial_angles(singles, angled, names, step_deg):
+    """Initial theta (rad, dict by frame), which are free, and marks-vs-step checks."""
+    have_step = step_deg is not None
+    theta: dict[int, float] = {}
+    checks = []
+    marked = [k for k in angled if singles[k].yaw_ok]
+    ref = marked[0] if marked else angled[0]
+    for k in angled:
+        if have_step:
+            theta[k] = math.radians(k * step_deg) / TURN_SIGN
+        else:
+            theta[k] = _yaw_of(singles[ref].T[:3, :3].T @ singles[k].T[:3, :3])
+    if have_step and marked:
+        for k in marked:
+            rel = _yaw_of(singles[ref].T[:3, :3].T @ singles[k].T[:3, :3])
+            diff = math.degrees(float(_wrap(rel - (theta[k] - theta[ref]))))
+            if abs(diff) > ANGLE_CHECK_DEG:
+                checks.append({"image": names[k], "marks_minus_step_deg": round(diff, 3)})
+    free = np.array([(not have_step) and k != ref for k in angled])
+    return theta, free, checks
+
+
+def _num(x) -> float | None:
+    x = float(x)
+    return None if not math.isfinite(x) else x
+
+
+def _result(fit: _Fit, mode, why, singles, reasons, ok, used, names, size, intr, notes, checks, rms_pooled,
+            centre_rms) -> SequenceCalibration:
+    st = fit.state
+    W, H = size
+    if intr is not None:
+        intrinsics = Intrinsics(K=intr.K, width=W, height=H, dist=intr.dist)
+    else:
+        dist = st.dist if np.any(st.dist) else np.zeros(0)
+        intrinsics = Intrinsics(K=st.K, width=W, height=H, dist=dist)
+    Ts = st.poses()
+    pos = {k: i for i, k in enumerate(used)}
+    frames = []
+    for k in range(len(singles)):
+        s = singles[k]
+        if k in pos:
+            i = pos[k]
+            angle = (TURN_SIGN * math.degrees(st.theta[i])) % 360.0 if mode == "turntable" else float("nan")
+            status = "ok" if (mode == "turntable" or s.yaw_ok) else f"angle marks unreadable: {s.angle_error}"
+            frames.append(FramePose(image=names[k], angle_deg=angle, T_cam_table=Ts[i],
+                                    rms_px=float(fit.rms_per_frame[i]), status=status))
+        else:
+            reason = reasons[k] if s is None else f"angle marks unreadable: {s.angle_error}"
+            frames.append(FramePose(image=names[k], angle_deg=float("nan"), T_cam_table=np.eye(4),
+                                    status=reason or "not calibrated"))
+    std = fit.std
+    meta = {
+        "mode_reason": why,
+        "rms_px": fit.rms_px,
+        "single_view_rms_px": rms_pooled,
+        "frames_used": len(used),
+        "frames_skipped": sum(1 for f in frames if not f.ok),
+        "focal_std_px": _num(std.get("f", float("nan"))),
+        "principal_point_std_px": [_num(std.get("cx", float("nan"))), _num(std.get("cy", float("nan")))],
+        "dist_std": {k: _num(std[k]) for k in ("k1", "k2") if k in std},
+        "stroke_mm": _num(st.stroke) if fit.problem.free_stroke else None,
+        "stroke_std_mm": _num(std.get("stroke", float("nan"))),
+        "not_estimated": notes,
+        "intrinsics_source": "given" if intr is not None else "estimated",
+    }
+    if mode == "turntable":
+        C = -st.R_cam_axis.T @ st.t_cam_axis
+        meta["turntable"] = {
+            "pattern_offset_from_axis_mm": [float(st.d_xz[0]), float(st.d_xz[1])],
+            "camera_height_mm": float(C[1]),
+            "camera_radius_mm": float(np.hypot(C[0], C[2])),
+            "camera_centres_fit_rms_mm": _num(centre_rms),
+        }
+        p = fit.problem
+        res = [math.degrees(p._mark_residual(i, Ts[i][:3, :3]) / p.mark_w[i])
+               for i in range(len(used)) if p.has_mark[i]]
+        if res:
+            meta["turntable"]["marks_residual_deg"] = {"median_abs": float(np.median(np.abs(res))),
+                                                       "max_abs": float(np.max(np.abs(res)))}
+    if checks:
+        meta["angle_checks"] = checks
+    return SequenceCalibration(intrinsics=intrinsics, frames=tuple(frames), mode=mode, meta=meta)
