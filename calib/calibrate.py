@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from .camera import angle_between_deg
-from .conics import conic_to_ellipse
+from .conics import conic_to_ellipse, sampson_distance
 from .refine import edge_residuals, refine_view
 from .solve_paper import solve_paper
 from .solve_pencil import concentric_conics, fit_edge_conics, solve_pencil
@@ -34,6 +34,12 @@ __all__ = ["SOLVERS", "MIN_TILT_DEG", "calibrate_view", "tilt_deg"]
 
 SOLVERS = ("paper", "pencil", "refine")
 MIN_TILT_DEG = 8.0
+# Model check: the ML residual RMS may exceed the free-ellipse RMS by this
+# factor plus floor. Measured (paper view, 200 points/ring): concentric rings
+# give a ratio <= 1.00 at 0.1–2 px noise; an inner ring 1 mm off-centre gives
+# 2.2–2.4 at 0.5 px, 10–11 at 0.1 px; 2 mm gives 4 at 0.5 px.
+ADEQUACY_FACTOR = 2.0
+ADEQUACY_FLOOR_PX = 0.25
 
 
 def tilt_deg(T_cam_table: np.ndarray) -> float:
@@ -76,7 +82,8 @@ def calibrate_view(
         ``paper``: the paper as written (cross-ratio centre, eq. 17–27);
         ``pencil``: closed form from the conic pencil and the circular points;
         ``refine`` (default): maximum likelihood over the edge points,
-        initialised by ``pencil`` (``paper`` if that fails).
+        initialised by ``pencil`` (``paper`` if that fails). The ML fit is run
+        for every solver as the concentric-circles model check.
     principal_point_px : (2,) float, optional
         Default: the image centre ``((W-1)/2, (H-1)/2)``.
     focal_guess_px : float, optional
@@ -92,8 +99,9 @@ def calibrate_view(
     Raises
     ------
     CalibrationError
-        Fewer than two rings, non-concentric conics, wrong radius ratio, a
-        view closer to fronto-parallel than ``MIN_TILT_DEG``, or no solution.
+        Fewer than two rings, wrong radius ratio, edges that two concentric
+        circles do not explain (``ADEQUACY_FACTOR``), a view closer to
+        fronto-parallel than ``MIN_TILT_DEG``, or no solution.
     ValueError
         Unknown solver.
     """
@@ -104,14 +112,22 @@ def calibrate_view(
         raise CalibrationError(f"need two concentric rings, found {len(obs.radii_mm())}")
     has_stroke = any(e.side != 0 for e in obs.edges)
     stroke = float(spec.stroke_mm) if has_stroke else 0.0
-    cc = concentric_conics(fit_edge_conics(obs.edges), stroke)
+    fits = fit_edge_conics(obs.edges)
+    cc = concentric_conics(fits, stroke)
     f, T = _closed_form(obs, cc, stroke, pp, solver, focal_guess_px)
     tilt = tilt_deg(T)
     if tilt < MIN_TILT_DEG:
         raise _refuse_tilt(tilt)
-    std = CalibrationStd(focal_px=float("nan"), normal_deg=float("nan"), t_mm=np.full(3, np.nan))
+    # The ML fit also tests the model: two concentric circles on one plane must
+    # explain the edges about as well as free ellipses do.
+    r = refine_view(obs.edges, Intrinsics.from_focal(f, obs.width, obs.height, pp).K, T, stroke)
+    free_rms = _free_ellipse_rms(fits)
+    if r.rms_px > ADEQUACY_FACTOR * free_rms + ADEQUACY_FLOOR_PX:
+        raise CalibrationError(
+            f"edges do not fit two concentric circles on one plane: RMS {r.rms_px:.2f} px against "
+            f"{free_rms:.2f} px for free ellipses (rings not concentric, lens distortion or wrong edges)"
+        )
     if solver == "refine":
-        r = refine_view(obs.edges, Intrinsics.from_focal(f, obs.width, obs.height, pp).K, T, stroke)
         if tilt_deg(r.T_cam_table) < MIN_TILT_DEG:
             raise _refuse_tilt(tilt_deg(r.T_cam_table))
         return ViewCalibration(
@@ -120,8 +136,19 @@ def calibrate_view(
         )
     K = Intrinsics.from_focal(f, obs.width, obs.height, pp)
     e = edge_residuals(K.K, T, stroke, obs.edges)
+    std = CalibrationStd(focal_px=float("nan"), normal_deg=float("nan"), t_mm=np.full(3, np.nan))
     return ViewCalibration(intrinsics=K, T_cam_table=T, std=std, rms_px=float(np.sqrt(np.mean(e**2))),
                            solver=solver, stroke_mm=stroke)
+
+
+def _free_ellipse_rms(fits) -> float:
+    """RMS Sampson distance (px) of the edge sets from their own fitted conics."""
+    ss, dof = 0.0, 0
+    for C, e in fits:
+        d = sampson_distance(C, e.uv_px)
+        ss += float(d @ d)
+        dof += max(len(d) - 5, 1)
+    return float(np.sqrt(ss / dof))
 
 
 def _closed_form(obs, cc, stroke, pp, solver, focal_guess_px):
@@ -141,4 +168,6 @@ def _closed_form(obs, cc, stroke, pp, solver, focal_guess_px):
         raise _refuse_tilt(rough_tilt) from errors[-1]
     if focal_guess_px is not None and solver == "refine":
         return solve_pencil(cc, pp, focal_px=float(focal_guess_px))
-    raise errors[-1]
+    if len(errors) == 1:
+        raise errors[0]
+    raise CalibrationError("; ".join(f"{n}: {e}" for n, e in zip(order, errors))) from errors[-1]
