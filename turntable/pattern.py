@@ -157,7 +157,7 @@ def _layout(spec: TargetSpec, paper) -> _Sheet:
     if need_w > W or need_h > H:
         raise ValueError(f"the pattern ({_fmt(2 * R)} mm across, {_fmt(need_w)} x {_fmt(need_h)} mm with "
                          f"margins and text) does not fit on {_fmt(W)} x {_fmt(H)} mm paper; "
-                         f"use smaller radii or larger paper")
+                         f"use smaller radii or larger paper (e.g. a3)")
     spare = H - need_h
     top = m + spare / 3.0
     cx, cy = W / 2.0, top + head + 3.0 + R
