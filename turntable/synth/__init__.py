@@ -1,0 +1,1 @@
+"""Synthetic turntable scenes with exact ground truth (``turntable synth``)."""
