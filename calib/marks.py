@@ -354,7 +354,7 @@ def _robust_mean(x: np.ndarray) -> tuple[float, float, int]:
     """Mean of the inliers (within 4 robust sigma of the median), its std error, inlier count."""
     med = float(np.median(x))
     sig = 1.4826 * float(np.median(np.abs(x - med)))
-    keep = np.abs(x - med) <= max(4.0 * sig, 0.02)
+    keep = np.abs(x - med) <= max(4.0 * sig, 0.05)
     xi = x[keep]
     std = float(xi.std(ddof=1) / np.sqrt(xi.size)) if xi.size > 1 else float("nan")
     return float(xi.mean()), std, int(xi.size)

@@ -29,7 +29,7 @@ import numpy as np
 
 from calib.target import TargetSpec, ink_at, mark_cells, turntable_angle
 
-__all__ = ["render_target_image", "write_pattern", "paper_size_mm", "PAPER_SIZES_MM", "SHEET_MARGIN_MM"]
+__all__ = ["render_target_image", "write_pattern", "sheet_layout", "SheetLayout", "paper_size_mm", "PAPER_SIZES_MM", "SHEET_MARGIN_MM"]
 
 #: Paper sizes (width, height) in mm, portrait.
 PAPER_SIZES_MM = {"a4": (210.0, 297.0), "letter": (215.9, 279.4), "a3": (297.0, 420.0)}
@@ -113,14 +113,29 @@ def _coverage_white(spec: TargetSpec, x_mm: np.ndarray, z_mm: np.ndarray, pixel_
 # ----------------------------------------------------------------------------- sheet layout
 
 @dataclass(frozen=True)
-class _Sheet:
-    """What goes on the paper, in mm from the sheet's top-left corner, y down."""
+class SheetLayout:
+    """What goes on the paper, in mm from the sheet's top-left corner, y down.
+
+    Attributes
+    ----------
+    width_mm, height_mm : float
+        Paper size.
+    centre_mm : (float, float)
+        Pattern centre (table origin); table +X is sheet +x, table +Z sheet +y.
+    scale_bar_mm : (float, float, float)
+        The 50 mm scale bar: left end x, top y, length.
+    rects : tuple of (x, y, w, h)
+        Filled black rectangles (the scale bar and its ticks).
+    texts : tuple of (x, baseline_y, size, text)
+        Left-aligned text lines, ``size`` = font size in mm.
+    """
 
     width_mm: float
     height_mm: float
-    centre_mm: tuple[float, float]                 # pattern centre
-    rects: tuple[tuple[float, float, float, float], ...]   # filled (x, y, w, h)
-    texts: tuple[tuple[float, float, float, str], ...]     # (x, baseline y, size, text), left-aligned
+    centre_mm: tuple[float, float]
+    scale_bar_mm: tuple[float, float, float]
+    rects: tuple[tuple[float, float, float, float], ...]
+    texts: tuple[tuple[float, float, float, str], ...]
 
 
 def paper_size_mm(paper) -> tuple[float, float]:
@@ -148,7 +163,8 @@ def _fmt(x: float) -> str:
     return f"{x:g}"
 
 
-def _layout(spec: TargetSpec, paper) -> _Sheet:
+def sheet_layout(spec: TargetSpec, paper) -> SheetLayout:
+    """Where the pattern, scale bar and text go on ``paper``; ValueError if it does not fit."""
     W, H = paper_size_mm(paper)
     m = SHEET_MARGIN_MM
     R = spec.extent_mm
@@ -179,7 +195,7 @@ def _layout(spec: TargetSpec, paper) -> _Sheet:
     lines.append("Lay the sheet flat on the turntable with the centre on the axis; keep the rings and marks clean.")
     for i, line in enumerate(lines):
         texts.append((x0, y + 10.0 + 5.5 * i, 2.8, line))
-    return _Sheet(W, H, (cx, cy), tuple(bar), tuple(texts))
+    return SheetLayout(W, H, (cx, cy), (x0, y, 50.0), tuple(bar), tuple(texts))
 
 
 # ----------------------------------------------------------------------------- writers
@@ -211,7 +227,7 @@ def write_pattern(path, spec: TargetSpec, paper="a4", dpi: float = 300) -> str:
     ext = os.path.splitext(path)[1].lower()
     if ext not in (".pdf", ".svg", ".png"):
         raise ValueError(f"unsupported output format {ext or '(none)'!r}: use .pdf, .svg or .png")
-    sheet = _layout(spec, paper)
+    sheet = sheet_layout(spec, paper)
     if ext == ".svg":
         data = _svg(spec, sheet).encode("utf-8")
     elif ext == ".pdf":
@@ -232,7 +248,7 @@ def _sector_points(cx, cy, t0, t1, r0, r1):
             (cx + r0 * c1, cy + r0 * s1), (cx + r0 * c0, cy + r0 * s0))
 
 
-def _svg(spec: TargetSpec, sheet: _Sheet) -> str:
+def _svg(spec: TargetSpec, sheet: SheetLayout) -> str:
     from xml.sax.saxutils import escape
 
     W, H = sheet.width_mm, sheet.height_mm
@@ -282,7 +298,7 @@ def _pdf_text(s: str) -> str:
     return "".join(f"\\{chr(b)}" if b in b"()\\" else (chr(b) if 32 <= b < 127 else f"\\{b:03o}") for b in raw)
 
 
-def _pdf(spec: TargetSpec, sheet: _Sheet) -> bytes:
+def _pdf(spec: TargetSpec, sheet: SheetLayout) -> bytes:
     W, H = sheet.width_mm, sheet.height_mm
     cx, cy = sheet.centre_mm
     f = "{:.4f}".format
@@ -325,7 +341,7 @@ def _pdf(spec: TargetSpec, sheet: _Sheet) -> bytes:
     return bytes(out)
 
 
-def _png(spec: TargetSpec, sheet: _Sheet, dpi: float) -> bytes:
+def _png(spec: TargetSpec, sheet: SheetLayout, dpi: float) -> bytes:
     import io
 
     from PIL import Image, ImageDraw, ImageFont
