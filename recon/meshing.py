@@ -6,6 +6,10 @@ surface is its zero level set ``f(p) = 0``, extracted by marching cubes
 (Lewiner) with linear interpolation along grid edges: a crossing between
 samples ``f_a > 0 > f_b`` lies at ``p_a + f_a / (f_a - f_b) (p_b - p_a)``.
 
+When the full-resolution surface would exceed ``max_faces`` more than
+fourfold, marching cubes runs on every ``step``-th sample instead (quadric
+decimation time grows with its input; the hull is smooth at that scale).
+
 Everything after extraction is shared with the fusion stage through
 :func:`finalize_mesh`:
 
@@ -45,6 +49,9 @@ Progress = Callable[[int, int], None] | None
 # Taubin pass band: λ = 0.5, μ = -0.53 (k_PB = 1/λ + 1/μ ≈ 0.11).
 _TAUBIN_LAMBDA = 0.5
 _TAUBIN_NU = 0.53
+# mesh_from_hull extracts on a coarser grid when full resolution would give more
+# than this many times max_faces (quadric decimation time grows with its input).
+_MAX_DECIMATION_RATIO = 4.0
 # Marching-cubes faces per (surface area / voxel²), measured on spheres and blobs
 # (≈ 3.0); used to pick the grid of the watertight remesh.
 _MC_FACES_PER_AREA = 3.0
@@ -122,30 +129,35 @@ def mesh_from_hull(
         raise ValueError("hull has no inside voxel (all values <= 0): nothing to mesh")
 
     vertices_table, faces = _marching_cubes_closed(values, origin, voxel_mm)
+    step = int(np.sqrt(len(faces) / (_MAX_DECIMATION_RATIO * max_faces)))
+    if step > 1:  # far finer than asked: extract on every step-th sample instead of decimating it all
+        vertices_table, faces = _marching_cubes_closed(values, origin, voxel_mm, step=step)
     if progress is not None:
         progress(1, 6)
     stage = (lambda d, t: progress(d + 1, t + 1)) if progress is not None else None
     return finalize_mesh(vertices_table, faces, max_faces, smooth_iters=smooth_iters,
-                         min_body_fraction=min_body_fraction, progress=stage)
+                         min_body_fraction=min_body_fraction, assume_outward=True, progress=stage)
 
 
-def _marching_cubes_closed(values: np.ndarray, origin_table: np.ndarray, voxel_mm: float):
+def _marching_cubes_closed(values: np.ndarray, origin_table: np.ndarray, voxel_mm: float, step: int = 1):
     """Zero level set of ``values`` as a closed, outward triangle soup (mm, table frame).
 
-    The grid is padded with one outside layer so bodies touching the grid's
-    border are capped. Samples that are exactly 0 are nudged outside: marching
-    cubes places a vertex on a grid node there, which several cubes share
-    without merging, and the surface pinches into non-manifold edges.
+    The grid is padded with ``step`` outside layers so bodies touching the
+    grid's border are capped (marching cubes samples every ``step``-th node,
+    so the last one sampled lies in the padding). Samples that are exactly 0
+    are nudged outside: marching cubes places a vertex on a grid node there,
+    which several cubes share without merging, and the surface pinches into
+    non-manifold edges.
     """
     eps = np.float32(1e-3 * voxel_mm)
     v = values.copy()
     v[np.abs(v) < eps] = -eps
-    v = np.pad(v, 1, mode="constant", constant_values=-voxel_mm)
-    verts, faces, _, _ = measure.marching_cubes(v, level=0.0, spacing=(voxel_mm,) * 3)
-    # Padding shifts indices by one voxel. skimage winds triangles clockwise
-    # seen from the side of larger values (our inside) for an (x, y, z) grid,
-    # i.e. inward: reverse them.
-    verts_table = verts.astype(np.float64) + (origin_table - voxel_mm)
+    v = np.pad(v, step, mode="constant", constant_values=-voxel_mm)
+    verts, faces, _, _ = measure.marching_cubes(v, level=0.0, spacing=(voxel_mm,) * 3, step_size=step)
+    # Padding shifts indices by ``step`` voxels. skimage winds triangles
+    # clockwise seen from the side of larger values (our inside) for an
+    # (x, y, z) grid, i.e. inward: reverse them.
+    verts_table = verts.astype(np.float64) + (origin_table - step * voxel_mm)
     return verts_table, faces[:, ::-1].astype(np.int64)
 
 
@@ -156,6 +168,7 @@ def finalize_mesh(
     *,
     smooth_iters: int = 0,
     min_body_fraction: float = 0.0,
+    assume_outward: bool = False,
     progress: Progress = None,
 ) -> TableMesh:
     """Clean, orient, smooth, decimate and give normals to a triangle mesh.
@@ -172,6 +185,11 @@ def finalize_mesh(
         Taubin half-steps (0: none; odd counts are rounded up so λ and μ pair).
     min_body_fraction : float
         Drop bodies whose |volume| is below this fraction of the largest's.
+    assume_outward : bool
+        The faces are known to be wound counter-clockwise from outside (as
+        marching cubes of a signed grid gives, enclosed cavities included):
+        skip re-orientation. Otherwise every closed body is turned to positive
+        volume, which would also turn an enclosed cavity inside out.
     progress : callable(done, total), optional
 
     Returns
@@ -204,7 +222,7 @@ def finalize_mesh(
         if progress is not None:
             progress(done, 5)
 
-    mesh = _clean_and_orient(trimesh.Trimesh(V, F.astype(np.int64), process=True))
+    mesh = _clean_and_orient(trimesh.Trimesh(V, F.astype(np.int64), process=True), assume_outward)
     report(1)
     if min_body_fraction > 0:
         mesh = _drop_small_bodies(mesh, min_body_fraction)
@@ -222,7 +240,7 @@ def finalize_mesh(
                      faces=np.asarray(mesh.faces, dtype=np.int64), normals_table=normals)
 
 
-def _clean_and_orient(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+def _clean_and_orient(mesh: trimesh.Trimesh, assume_outward: bool = False) -> trimesh.Trimesh:
     """Drop degenerate/duplicate faces, fill holes, orient each body outward."""
     mesh.update_faces(mesh.nondegenerate_faces())
     mesh.update_faces(mesh.unique_faces())
@@ -233,20 +251,41 @@ def _clean_and_orient(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
         trimesh.repair.fill_holes(mesh)
         if not mesh.is_watertight:
             log.warning("mesh is not watertight after hole filling (%d faces)", len(mesh.faces))
-    trimesh.repair.fix_normals(mesh, multibody=True)
-    if mesh.is_watertight and mesh.volume < 0:  # fix_normals left a closed mesh inside out
-        mesh.invert()
+    if assume_outward:
+        return mesh
+    if mesh.is_winding_consistent:
+        labels, volumes = _body_volumes(mesh)
+        faces = mesh.faces.copy()
+        inverted = volumes[labels] < 0
+        faces[inverted] = faces[inverted][:, ::-1]
+        mesh.faces = faces
+    else:
+        trimesh.repair.fix_normals(mesh, multibody=True)
     return mesh
 
 
+def _body_volumes(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
+    """Connected-body label of each face (M,) and signed volume of each body, mm³.
+
+    A body's volume is the sum of its faces' signed tetrahedra with the
+    origin, ``v0 . (v1 x v2) / 6`` (meaningful for closed bodies).
+    """
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
+    tri = mesh.triangles
+    tet = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])) / 6.0
+    return labels, np.bincount(labels, weights=tet)
+
+
 def _drop_small_bodies(mesh: trimesh.Trimesh, fraction: float) -> trimesh.Trimesh:
-    bodies = mesh.split(only_watertight=False)
-    if len(bodies) <= 1:
+    labels, volumes = _body_volumes(mesh)
+    if len(volumes) <= 1:
         return mesh
-    sizes = np.array([abs(b.volume) if b.is_watertight else b.area ** 1.5 for b in bodies])
-    keep = [b for b, s in zip(bodies, sizes) if s >= fraction * sizes.max()]
-    log.debug("kept %d of %d bodies", len(keep), len(bodies))
-    return trimesh.util.concatenate(keep) if len(keep) > 1 else keep[0]
+    size = np.abs(volumes)
+    keep = size >= fraction * size.max()
+    log.debug("kept %d of %d bodies", keep.sum(), len(keep))
+    mesh.update_faces(keep[labels])
+    mesh.remove_unreferenced_vertices()
+    return mesh
 
 
 def _decimate(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:

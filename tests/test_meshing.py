@@ -79,19 +79,22 @@ def blob_hull(seed: int) -> VoxelHull:
         c = np.round(rng.uniform(12, 52, 3))
         r = float(rng.integers(3, 10))
         values = np.maximum(values, (r - np.linalg.norm(P - c, axis=-1)).astype(np.float32))
-    values[:, :, :3] = np.maximum(values[:, :, :3], 1.0)  # a slab touching the grid border
+    values[:, :, :3] = np.maximum(values[:, :, :3], 1.0)  # a slab touching the first z border
+    values[-2:, 20:40, 20:40] = 1.0  # a block touching the last x border
     return VoxelHull(values=values, origin_table=np.array([-32.0, 0.0, -32.0]), voxel_mm=1.0)
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_blobs_with_exact_zero_samples_and_border_contact_mesh_watertight(seed):
+@pytest.mark.parametrize("seed, max_faces", [(0, 4000), (1, 4000), (1, 600)])
+def test_blobs_with_exact_zero_samples_and_border_contact_mesh_watertight(seed, max_faces):
     hull = blob_hull(seed)
     assert np.any(hull.values == 0)  # the degenerate case the nudge exists for
-    mesh = mesh_from_hull(hull, max_faces=4000)
+    mesh = mesh_from_hull(hull, max_faces=max_faces, min_body_fraction=0.0)
     stats = mesh_stats(mesh)
-    assert stats.watertight and stats.volume_mm3 > 0 and stats.n_faces <= 4000
-    # the slab is capped at the grid border, half a voxel beyond the last sample at most
-    assert mesh.vertices_table[:, 2].min() >= -32.0 - 1.0
+    assert stats.watertight and stats.volume_mm3 > 0 and stats.n_faces <= max_faces
+    # both border bodies are capped, at most a (coarse) voxel beyond the outermost samples
+    lo, hi = mesh.vertices_table.min(axis=0), mesh.vertices_table.max(axis=0)
+    assert lo[2] >= -32.0 - 4.0 and hi[0] <= -32.0 + 63 + 4.0
+    assert hi[0] > -32.0 + 61  # the block at the x border survived
 
 
 def test_small_bodies_are_dropped():
@@ -109,6 +112,18 @@ def test_finalize_mesh_fixes_inward_winding_and_holes():
     mesh = finalize_mesh(tm.vertices, faces, max_faces=10**6)
     stats = mesh_stats(mesh)
     assert stats.watertight and stats.volume_mm3 > 0
+
+
+def test_finalize_mesh_orients_each_body_outward():
+    a = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
+    b = trimesh.creation.icosphere(subdivisions=3, radius=5.0)
+    V = np.vstack([a.vertices, b.vertices + (40.0, 0.0, 0.0)])
+    F = np.vstack([a.faces, b.faces[:, ::-1] + len(a.vertices)])  # second body inside out
+    mesh = finalize_mesh(V, F, max_faces=10**6)
+    tm = trimesh.Trimesh(mesh.vertices_table, mesh.faces, process=False)
+    centres = np.where(tm.triangles_center[:, :1] > 20.0, (40.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    assert np.all(np.einsum("ij,ij->i", tm.face_normals, tm.triangles_center - centres) > 0)
+    assert abs(mesh_stats(mesh).volume_mm3 - (a.volume + b.volume)) < 1e-6 * a.volume
 
 
 def test_remesh_watertight_fallback_is_closed_and_small():
