@@ -198,18 +198,21 @@ def _check_cameras(K, width, height, frames, dist):
         if not str(name) or any(ch.isspace() for ch in str(name)):
             raise ValueError(f"frames[{k}]: image name {name!r} must be non-empty without whitespace")
         out.append((str(name), T))
-    d = np.zeros(4) if dist is None else np.asarray(dist, dtype=np.float64).ravel()
-    if len(d) > 5 or (len(d) == 5 and d[4] != 0.0):
-        raise ValueError(f"dist: expected k1, k2, p1, p2 (k3 = 0), got {d.tolist()}")
-    d = np.concatenate([d, np.zeros(4)])[:4]
+    d = np.zeros(5) if dist is None else np.asarray(dist, dtype=np.float64).ravel()
+    if len(d) > 5:
+        raise ValueError(f"dist: expected OpenCV k1, k2, p1, p2[, k3], got {len(d)} coefficients")
+    d = np.concatenate([d, np.zeros(5)])[:5]
     return K, int(width), int(height), out, d
 
 
 def _colmap_camera_line(K, width, height, d) -> str:
     fx, fy = K[0, 0], K[1, 1]
     cx, cy = K[0, 2] + 0.5, K[1, 2] + 0.5  # COLMAP: top-left pixel centre at (0.5, 0.5)
-    if np.any(d != 0):
-        params = [fx, fy, cx, cy, *d]
+    if d[4] != 0:
+        params = [fx, fy, cx, cy, *d, 0.0, 0.0, 0.0]  # k4..k6 of the rational model: 0
+        model = "FULL_OPENCV"
+    elif np.any(d != 0):
+        params = [fx, fy, cx, cy, *d[:4]]
         model = "OPENCV"
     else:
         params = [fx, fy, cx, cy]
@@ -230,8 +233,9 @@ def export_colmap(
 ) -> dict[str, Path]:
     """Write a COLMAP text model (``cameras.txt``, ``images.txt``, ``points3D.txt``).
 
-    COLMAP's world is our table frame in metres. One shared camera: PINHOLE,
-    or OPENCV (``fx fy cx cy k1 k2 p1 p2``) when ``dist`` is non-zero.
+    COLMAP's world is our table frame in metres. One shared camera: PINHOLE;
+    OPENCV (``fx fy cx cy k1 k2 p1 p2``) when ``dist`` is non-zero;
+    FULL_OPENCV (``... k3 k4 k5 k6``, k4..k6 = 0) when k3 is non-zero.
 
     Parameters
     ----------
@@ -244,8 +248,8 @@ def export_colmap(
         whitespace) and the (4, 4) table (mm) -> camera (mm) pose.
     out_dir : path
         Created if missing (typically ``.../sparse/0``).
-    dist : (4,) float, optional
-        OpenCV ``k1 k2 p1 p2``.
+    dist : (4,) or (5,) float, optional
+        OpenCV ``k1 k2 p1 p2[ k3]`` of the images named in ``frames``.
     points_table : (P, 3) float, optional
         Points (mm, table frame) written to ``points3D.txt`` with empty tracks
         (an initialisation for Gaussian splatting); none by default.
@@ -317,8 +321,8 @@ def export_nerfstudio(
     frames : sequence of (image_name, T_cam_table)
         ``file_path`` is written as given: a path relative to ``out_dir``.
     out_dir : path
-    dist : (4,) float, optional
-        OpenCV ``k1 k2 p1 p2`` (zeros if omitted).
+    dist : (4,) or (5,) float, optional
+        OpenCV ``k1 k2 p1 p2[ k3]`` (zeros if omitted).
     ply_file_path : str, optional
         Relative path of a point cloud / mesh PLY in the same frame and unit
         (e.g. ``model.ply`` from :func:`export_mesh`) for splatfacto's
@@ -334,7 +338,7 @@ def export_nerfstudio(
         "camera_model": "OPENCV",
         "fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2] + 0.5, "cy": K[1, 2] + 0.5,
         "w": width, "h": height,
-        "k1": d[0], "k2": d[1], "p1": d[2], "p2": d[3],
+        "k1": d[0], "k2": d[1], "k3": d[4], "p1": d[2], "p2": d[3],
         "frames": [],
     }
     if ply_file_path is not None:

@@ -118,18 +118,19 @@ def read_colmap(folder):
     return model, w, h, params, poses
 
 
-@pytest.mark.parametrize("dist", [None, [0.05, -0.01, 0.001, -0.002]])
-def test_colmap_round_trip_and_projection(tmp_path, dist):
+@pytest.mark.parametrize("dist, model", [(None, "PINHOLE"), ([0.05, -0.01, 0.001, -0.002], "OPENCV"),
+                                         ([0.05, -0.01, 0.001, -0.002, 0.003], "FULL_OPENCV")])
+def test_colmap_round_trip_and_projection(tmp_path, dist, model):
     rng = np.random.default_rng(2)
     frames = random_frames(rng)
     pts = rng.uniform(-50, 50, (7, 3))
     paths = export_colmap(K_CAM, 1280, 960, frames, tmp_path, dist=dist, points_table=pts)
-    model, w, h, params, poses = read_colmap(tmp_path)
+    written_model, w, h, params, poses = read_colmap(tmp_path)
     assert (w, h) == (1280, 960)
-    assert model == ("PINHOLE" if dist is None else "OPENCV")
+    assert written_model == model
     fx, fy, cx, cy = params[:4]
     if dist is not None:
-        assert np.allclose(params[4:], dist)
+        assert np.allclose(params[4:4 + len(dist)], dist) and not np.any(params[4 + len(dist):])
     for name, T in frames:
         R, t_m = poses[name]
         assert np.allclose(R, T[:3, :3], atol=POSE_TOL)
