@@ -296,3 +296,25 @@ def test_refuses_a_target_without_marks():
         read_turntable_angle(img, K, T, plain)
     with pytest.raises(ValueError):
         read_turntable_angle(img, K[:2], T, SPEC)
+
+
+def _distort(img, K, dist):
+    """The photo a lens with OpenCV distortion ``dist`` would take of the same scene."""
+    H, W = img.shape[:2]
+    uv = np.stack(np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64)), -1)
+    und = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, dist, P=K).reshape(H, W, 2).astype(np.float32)
+    return cv2.remap(img, und[..., 0], und[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def test_reads_a_distorted_photo_through_the_distortion_model():
+    rng = np.random.default_rng(41)
+    K = np.array([[1200.0, 0, 639.5], [0, 1200.0, 479.5], [0, 0, 1]])
+    T = look_at_pose(40.0, rng.uniform(0, 360), 420.0, target_table=(0.0, 0.0, 0.0))
+    T[:3, :] = cv2.Rodrigues(np.array([0.12, 0.3, 0.0]))[0] @ T[:3, :]   # target off-centre, partly cut
+    dist = np.array([-0.25, 0.08, 0.0, 0.0, 0.0])
+    img = _distort(synthetic_photo(SPEC, K, T, rng, occluders=[object_outline(K, T, 40.0, 120.0)]), K, dist)
+    alpha = rng.uniform(0, 360)
+    T_s = _solver_pose(T, alpha)
+    err = _angle_err_deg(read_turntable_angle(img, K, T_s, SPEC, dist=dist).angle_deg, alpha)
+    err_ignoring = _angle_err_deg(read_turntable_angle(img, K, T_s, SPEC).angle_deg, alpha)
+    assert err <= 0.02 and err_ignoring > 3 * err, (err, err_ignoring)
