@@ -240,8 +240,8 @@ def _polar_bands(grey, K, T, spec, dist) -> dict[str, np.ndarray]:
     return out
 
 
-def _visible(bands) -> tuple[np.ndarray, np.ndarray]:
-    """Columns where the printed sheet is seen, (n,) bool, and the local ink/paper contrast."""
+def _visible(bands) -> tuple[np.ndarray, float]:
+    """Columns where the printed sheet is seen, (n,) bool, and the typical ink/paper contrast."""
     core = bands["core"].mean(axis=0)
     gap = bands["gap"].mean(axis=0)
     outer = bands["outer"].mean(axis=0)
@@ -263,16 +263,16 @@ def _visible(bands) -> tuple[np.ndarray, np.ndarray]:
              & (trk.mean(axis=0) < gap + 0.3 * c))      # nothing brighter than the paper
     grow = int(round(GROW_MASK_DEG / STEP_DEG))
     valid = ndimage.minimum_filter1d(valid.astype(np.uint8), 2 * grow + 1, mode="wrap").astype(bool)
-    return valid, np.full(valid.shape, typical)
+    return valid, typical
 
 
-def _binarise(track, valid, contrast) -> tuple[np.ndarray, np.ndarray]:
+def _binarise(track, valid, contrast: float) -> tuple[np.ndarray, np.ndarray]:
     """+1 paper / -1 ink / 0 unknown per column, against a running mid-level (+-4 deg)."""
     w = 2 * int(round(4.0 / STEP_DEG)) + 1
     hi = ndimage.maximum_filter1d(np.where(valid, track, -np.inf), w, mode="wrap")
     lo = ndimage.minimum_filter1d(np.where(valid, track, np.inf), w, mode="wrap")
     ok = valid & np.isfinite(hi) & np.isfinite(lo)
-    ok[ok] &= hi[ok] - lo[ok] > 0.35 * contrast[ok]
+    ok[ok] &= hi[ok] - lo[ok] > 0.35 * contrast
     mid = np.zeros_like(track)
     mid[ok] = 0.5 * (hi[ok] + lo[ok])
     return np.where(ok, np.sign(track - mid), 0.0), ok
@@ -299,7 +299,7 @@ def _coarse_shift(binary, spec) -> tuple[int, float, float]:
     return best, float(corr[best]), float(corr[best] - second)
 
 
-def _edge_offsets(track, valid, contrast, shift, spec) -> tuple[np.ndarray, np.ndarray]:
+def _edge_offsets(track, valid, contrast: float, shift: int, spec: TargetSpec) -> tuple[np.ndarray, np.ndarray]:
     """Printed angle (deg) and (measured - printed) angle (deg) of every visible radial edge."""
     n = track.size
     theta_e, to_ink = mark_edges(spec)
@@ -319,7 +319,7 @@ def _edge_offsets(track, valid, contrast, shift, spec) -> tuple[np.ndarray, np.n
         # levels: the middle 40 % of the half-sectors on either side of the edge
         a = float(track[np.arange(c0 - cols(0.7 * half), c0 - cols(0.3 * half) + 1) % n].mean())
         b = float(track[np.arange(c0 + 1 + cols(0.3 * half), c0 + 2 + cols(0.7 * half)) % n].mean())
-        if (a - b if falling else b - a) < 0.3 * contrast[c0 % n]:
+        if (a - b if falling else b - a) < 0.3 * contrast:
             continue
         window = np.arange(c0 - w, c0 + w + 2)
         x = _crossing(track[window % n] - 0.5 * (a + b), window, pred)
