@@ -52,7 +52,9 @@ def test_taubin_smoothing_does_not_shrink():
     R, voxel, centre = 20.0, 1.0, (0.0, 0.0, 0.0)
     hull = sphere_hull(R, voxel, centre)
     raw = mesh_from_hull(hull, max_faces=10**7, smooth_iters=0)
-    smooth = mesh_from_hull(hull, max_faces=10**7, smooth_iters=20)
+    calls = []
+    smooth = mesh_from_hull(hull, max_faces=10**7, smooth_iters=20, progress=lambda d, t: calls.append((d, t)))
+    assert calls[-1][0] == calls[-1][1] and [d for d, _ in calls] == sorted(d for d, _ in calls)
     assert not np.allclose(raw.vertices_table, smooth.vertices_table)  # it did smooth
     assert abs(radii(smooth, centre).mean() - radii(raw, centre).mean()) < SHRINK_TOL_VOXELS * voxel
     assert abs(mesh_stats(smooth).volume_mm3 / (4 / 3 * np.pi * R**3) - 1) < VOLUME_REL_TOL
@@ -201,7 +203,9 @@ def test_colors_come_from_the_rendered_face_pattern():
             c = 120.0 * np.array([np.cos(el) * np.cos(az), np.sin(el), np.cos(el) * np.sin(az)])
             poses.append(look_at(K_TEST, c + rng.normal(0, 2.0, 3)))
     images = [render_face_colors(mesh, face_rgb, K_TEST, T) for T in poses]
-    out = color_vertices(mesh, images, K_TEST, np.array(poses))
+    calls = []
+    out = color_vertices(mesh, images, K_TEST, np.array(poses), progress=lambda d, t: calls.append((d, t)))
+    assert calls[-1] == (len(poses), len(poses))
     assert out.colors_rgb.shape == (len(mesh.vertices_table), 3) and out.colors_rgb.dtype == np.uint8
     p = mesh.vertices_table
     interior = np.min(np.abs(p), axis=1) > 0.2 * 20.0  # away from the octant borders
