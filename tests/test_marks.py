@@ -160,19 +160,25 @@ def test_default_marks_sit_outside_the_outer_ring_with_a_white_gap():
         TargetSpec(80, 50, 3, mark_code="01x" * 24)
 
 
-def test_mark_cells_and_ink_at_describe_the_same_ink():
+# the default code, and one turned so that an ink run crosses angle 0 (sector 71 ends in ink, 0 starts in it)
+WRAPPING_CODE = SPEC.mark_code[2:] + SPEC.mark_code[:2]
+
+
+@pytest.mark.parametrize("spec", [SPEC, TargetSpec(80.0, 50.0, 3.0, mark_code=WRAPPING_CODE)])
+def test_mark_cells_and_ink_at_describe_the_same_ink(spec):
     rng = np.random.default_rng(3)
-    r = rng.uniform(SPEC.mark_r0_mm - 2, SPEC.mark_r1_mm + 2, 20000)
+    r = rng.uniform(spec.mark_r0_mm - 2, spec.mark_r1_mm + 2, 20000)
     th = np.concatenate([rng.uniform(0, 2 * np.pi, 19000), rng.uniform(-0.02, 0.02, 1000)])
     X, Z = r * np.cos(th), r * np.sin(th)
-    cells = mark_cells(SPEC)
+    cells = mark_cells(spec)
     t = turntable_angle(X, Z)
     in_cell = np.zeros(r.size, bool)
     for t0, t1, r0, r1 in cells:
         ang = (t >= t0) & (t < t1) | (t + 2 * np.pi < t1)
         in_cell |= ang & (r >= r0) & (r <= r1)
-    assert np.array_equal(in_cell, ink_at(SPEC, X, Z))
-    assert cells.shape[0] > SPEC.n_sectors // 2
+    assert np.array_equal(in_cell, ink_at(spec, X, Z))
+    assert cells.shape[0] > spec.n_sectors // 2
+    assert (cells[:, 1].max() > 2 * np.pi) == (spec.mark_code == WRAPPING_CODE)
     assert mark_cells(TargetSpec(80, 50, 3, marks=False)).shape == (0, 4)
     assert not ink_at(TargetSpec(80, 50, 3, marks=False), X, Z).any()
 
