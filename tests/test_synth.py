@@ -208,3 +208,33 @@ def test_cup_has_a_concavity_silhouettes_cannot_see():
     mesh = make_object("cup", np.random.default_rng(0))
     assert mesh.is_watertight
     assert mesh.volume < 0.5 * mesh.convex_hull.volume
+
+
+def test_object_from_mesh_file_is_scaled_to_fit(tmp_path):
+    import trimesh
+    box = trimesh.creation.box(extents=[300.0, 500.0, 200.0])  # far too big, centred on the origin
+    path = tmp_path / "box.ply"
+    box.export(path)
+    out = make_sequence(tmp_path / "seq", _small_options(object=str(path), frames=1))
+    gt = trimesh.load_mesh(out / "object_gt.ply")
+    V = np.asarray(gt.vertices)
+    assert abs(V[:, 1].min()) < 1e-6 and V[:, 1].max() <= 120.0 + 1e-6
+    assert np.hypot(V[:, 0], V[:, 2]).max() <= 0.85 * (SPEC.r_inner_mm - SPEC.stroke_mm / 2) + 1e-6
+    np.testing.assert_allclose(np.ptp(V, axis=0) / np.ptp(V, axis=0)[1], [0.6, 1.0, 0.4], rtol=1e-6)
+    assert gt.visual.kind == "vertex"
+
+
+def test_angle_convention_matches_the_mark_reader(tmp_path):
+    """GT poses put the printed 0 deg mark on table +X; frame k = frame 0 turned by +angle_deg about +Y."""
+    marks = pytest.importorskip("calib.marks")
+    opts = _small_options(frames=2, width=480, height=360, focal_px=560.0, step_deg=40.0, jitter_deg=3.0,
+                          supersample=2, noise=1.0)
+    out = make_sequence(tmp_path / "seq", opts)
+    seq = read_cameras(out / "cameras_gt.json")
+    T0 = seq.frames[0].T_cam_table
+    for f in seq.frames:
+        img = cv2.imread(str(out / f.image))
+        own = marks.read_turntable_angle(img, seq.intrinsics.K, f.T_cam_table, opts.target_spec())
+        assert abs((own.angle_deg + 180.0) % 360.0 - 180.0) < 0.2  # deg
+        first = marks.read_turntable_angle(img, seq.intrinsics.K, T0, opts.target_spec())
+        assert abs((first.angle_deg + f.angle_deg + 180.0) % 360.0 - 180.0) < 0.2  # reads -angle_deg

@@ -47,6 +47,7 @@ BACKDROPS = ("dark", "light", "colour", "clutter")
 _DISC_THICKNESS_MM = 15.0
 _ROOM_RADIUS_MM = 700.0
 _ROOM_HEIGHT_MM = 2000.0
+_WALL_MM_PER_PX = 2.0
 _BAND_PIXELS = 1 << 16  # pixels rendered per batch (memory bound)
 
 
@@ -59,8 +60,9 @@ class SynthScene:
     turntable, room : open3d.t.geometry.RaycastingScene
         Geometry in the table frame (object, disc) and in the world frame
         (table top, wall).
-    object_id, disc_id, floor_id, wall_id : int
-        Geometry ids returned by the ray caster.
+    object_id, disc_id, floor_id, wall_id, backdrop_id : int
+        Geometry ids returned by the ray caster (``backdrop_id`` -1: no flat
+        backdrop, only the round wall).
     vertices_table : (N, 3) float32
         Object vertices, mm; ``faces`` (M, 3) int64; ``vertex_normals`` (N, 3)
         float32 and ``face_normals`` (M, 3) float32, unit; ``vertex_rgb`` (N, 3)
@@ -91,6 +93,7 @@ class SynthScene:
     disc_id: int
     floor_id: int
     wall_id: int
+    backdrop_id: int
     vertices_table: np.ndarray
     faces: np.ndarray
     vertex_normals: np.ndarray
@@ -127,30 +130,32 @@ def _cylinder(radius: float, y0: float, y1: float, n: int, caps: bool) -> tuple[
 
 
 def _wall_image(backdrop: str, rng: np.random.Generator) -> np.ndarray:
-    """sRGB wall texture (h, w, 3) float32, 4 mm per pixel, unwrapped cylinder."""
-    h, w = int(_ROOM_HEIGHT_MM / 4), int(2 * np.pi * _ROOM_RADIUS_MM / 4)
-    noise = cv2.GaussianBlur(rng.standard_normal((h, w)).astype(np.float32), (0, 0), 3.0)
+    """sRGB wall texture (h, w, 3) float32, ``_WALL_MM_PER_PX`` mm per pixel, unwrapped cylinder."""
+    h, w = int(_ROOM_HEIGHT_MM / _WALL_MM_PER_PX), int(2 * np.pi * _ROOM_RADIUS_MM / _WALL_MM_PER_PX)
+    noise = cv2.GaussianBlur(rng.standard_normal((h, w)).astype(np.float32), (0, 0), 6.0)
     if backdrop == "dark":
         base = np.array([0.07, 0.07, 0.075])
     elif backdrop == "light":
         base = np.array([0.78, 0.77, 0.74])
     elif backdrop == "colour":
         base = np.array([[0.1, 0.35, 0.6], [0.15, 0.5, 0.25], [0.6, 0.2, 0.15], [0.55, 0.45, 0.1]])[rng.integers(4)]
-    elif backdrop == "clutter":
+    elif backdrop == "clutter":  # shelves, boxes, posters, cables: many edges of every contrast
         img = np.full((h, w, 3), 0.45, np.float32) * rng.uniform(0.5, 1.2, 3).astype(np.float32)
-        for _ in range(400):
+        for _ in range(1500):
             c = tuple(float(x) for x in rng.uniform(0.02, 0.95, 3))
             x, y = int(rng.integers(w)), int(rng.integers(h))
-            sx, sy = (int(v) for v in rng.integers(3, 60, 2))
-            if rng.random() < 0.5:
+            sx, sy = (int(v) for v in rng.integers(4, 50, 2))
+            if rng.random() < 0.6:
                 cv2.rectangle(img, (x, y), (x + sx, y + sy), c, -1)
             else:
-                cv2.circle(img, (x, y), int(sx), c, -1)
-        for _ in range(60):  # thin lines: shelf edges, cables
+                cv2.circle(img, (x, y), int(sx) // 2, c, -1, cv2.LINE_AA)
+        for _ in range(150):  # thin lines: shelf edges, cables
             c = tuple(float(x) for x in rng.uniform(0.0, 1.0, 3))
             p0, p1 = rng.integers(0, [w, h], 2), rng.integers(0, [w, h], 2)
-            cv2.line(img, tuple(int(v) for v in p0), tuple(int(v) for v in p1), c, int(rng.integers(1, 4)))
-        return np.clip(img * (1.0 + 0.1 * noise[..., None]), 0, 1).astype(np.float32)
+            cv2.line(img, tuple(int(v) for v in p0), tuple(int(v) for v in p1), c, int(rng.integers(1, 5)),
+                     cv2.LINE_AA)
+        fine = _blur_noise(rng, (h, w), 1.0)
+        return np.clip(img * (1.0 + 0.08 * noise[..., None] + 0.05 * fine[..., None]), 0, 1).astype(np.float32)
     else:
         raise ValueError(f"unknown backdrop {backdrop!r}; choose one of {', '.join(BACKDROPS)}")
     img = base[None, None, :] * (1.0 + 0.06 * noise[..., None])
@@ -162,9 +167,18 @@ def _srgb_to_linear(x: np.ndarray) -> np.ndarray:
 
 
 def _blur_noise(rng: np.random.Generator, shape: tuple[int, int], sigma_px: float) -> np.ndarray:
-    """Zero-mean, unit-std smooth noise (float32) of correlation length ``sigma_px``."""
-    n = cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0), sigma_px)
-    return n / max(float(n.std()), 1e-12)
+    """Zero-mean, unit-std smooth noise (float32) of correlation length ``sigma_px``.
+
+    Wide kernels are blurred at a reduced resolution and resized up (cheap).
+    """
+    h, w = shape
+    f = max(1.0, sigma_px / 2.0)
+    small = (max(2, int(np.ceil(h / f)) + 2), max(2, int(np.ceil(w / f)) + 2))
+    n = cv2.GaussianBlur(rng.standard_normal(small).astype(np.float32), (0, 0), sigma_px / f)
+    if f > 1.0:
+        n = cv2.resize(n, (int(round(small[1] * f)), int(round(small[0] * f))), interpolation=cv2.INTER_CUBIC)
+    n = np.ascontiguousarray(n[:h, :w])
+    return (n - n.mean()) / max(float(n.std()), 1e-12)
 
 
 def _paper_radius_mm(spec: TargetSpec) -> float:
@@ -195,7 +209,7 @@ def _disc_top_texture(spec: TargetSpec, px_per_mm: float, paper_r: float, disc_r
     img = grain[..., None] * disc_rgb[None, None, :].astype(np.float32)
     paper = np.full((size, size), 255.0, np.float32)
     paper[m:m + n, m:m + n] = target
-    fibre = 1.0 + 0.01 * _blur_noise(rng, (size, size), 0.5 * px_per_mm)
+    fibre = 1.0 + 0.006 * _blur_noise(rng, (size, size), 0.5 * px_per_mm)
     paper_rgb = (paper * fibre / 255.0 * 0.92)[..., None] * np.array([1.0, 0.99, 0.96], np.float32)
     alpha = np.clip((paper_r - r) * px_per_mm + 0.5, 0.0, 1.0)[..., None]
     return _srgb_to_linear(alpha * paper_rgb + (1.0 - alpha) * img)
@@ -206,13 +220,14 @@ def _floor_texture(rng: np.random.Generator, half_mm: float, px_per_mm: float) -
     size = int(2 * half_mm * px_per_mm) + 1
     z = (np.arange(size, dtype=np.float32) - (size - 1) / 2.0) / px_per_mm
     warp = _blur_noise(rng, (size, size), 12.0 * px_per_mm)
-    grain = 0.5 + 0.5 * np.sin(z[:, None] / 2.5 + 2.5 * warp)
+    grain = 0.5 + 0.5 * np.sin(z[:, None] / 2.5 + 1.2 * warp)
     base = np.clip(np.array([0.55, 0.4, 0.27]) * rng.uniform(0.8, 1.15, 3), 0, 1).astype(np.float32)
     return _srgb_to_linear((0.8 + 0.2 * grain)[..., None] * base)
 
 
 def build_scene(mesh: trimesh.Trimesh, spec: TargetSpec, backdrop: str = "dark", *,
                 rng: np.random.Generator, target_px_per_mm: float = 6.0,
+                backdrop_distance_mm: float | None = None,
                 light_dir_world=(-0.45, 1.0, 0.55)) -> SynthScene:
     """Assemble the turntable and room ray-casting scenes around ``mesh``.
 
@@ -232,6 +247,11 @@ def build_scene(mesh: trimesh.Trimesh, spec: TargetSpec, backdrop: str = "dark",
         Draws the disc, table and wall colours and textures.
     target_px_per_mm : float
         Resolution of the disc-top raster (keep it >= 2 per image pixel).
+    backdrop_distance_mm : float, optional
+        Puts a flat backdrop (the wall texture) in the world plane
+        ``Z = -backdrop_distance_mm``, behind the turntable for a camera on
+        the +Z side; without it only a round wall 700 mm from the centre
+        surrounds the table (hand-held sequences look from every side).
     light_dir_world : (3,) array_like
         Direction towards the light, world frame (normalised here).
     """
@@ -255,6 +275,13 @@ def build_scene(mesh: trimesh.Trimesh, spec: TargetSpec, backdrop: str = "dark",
     floor_id = room.add_triangles(o3d.core.Tensor(fv), o3d.core.Tensor(np.array([[0, 2, 1], [0, 3, 2]], np.uint32)))
     wv, wf = _cylinder(_ROOM_RADIUS_MM, -_DISC_THICKNESS_MM - 1.0, _ROOM_HEIGHT_MM, 512, caps=False)
     wall_id = room.add_triangles(o3d.core.Tensor(wv), o3d.core.Tensor(wf))
+    backdrop_id = -1
+    if backdrop_distance_mm is not None:
+        zb = -float(backdrop_distance_mm)
+        bv = np.array([[-R, -_DISC_THICKNESS_MM - 1.0, zb], [R, -_DISC_THICKNESS_MM - 1.0, zb],
+                       [R, _ROOM_HEIGHT_MM, zb], [-R, _ROOM_HEIGHT_MM, zb]], np.float32)
+        backdrop_id = int(room.add_triangles(o3d.core.Tensor(bv),
+                                             o3d.core.Tensor(np.array([[0, 1, 2], [0, 2, 3]], np.uint32))))
 
     tm = trimesh.Trimesh(V, F, process=False)
     colors = np.asarray(mesh.visual.vertex_colors)[:, :3] if mesh.visual.kind == "vertex" else np.full((len(V), 3), 180)
@@ -263,7 +290,7 @@ def build_scene(mesh: trimesh.Trimesh, spec: TargetSpec, backdrop: str = "dark",
     floor_ppm = 1.0
     return SynthScene(
         turntable=tt, room=room, object_id=int(object_id), disc_id=int(disc_id), floor_id=int(floor_id),
-        wall_id=int(wall_id), vertices_table=V, faces=F,
+        wall_id=int(wall_id), backdrop_id=backdrop_id, vertices_table=V, faces=F,
         vertex_normals=np.asarray(tm.vertex_normals, np.float32), face_normals=np.asarray(tm.face_normals, np.float32),
         vertex_rgb=(colors / 255.0).astype(np.float32), albedo=mesh.metadata.get("albedo"),
         disc_top_linear=disc_top, disc_top_px_per_mm=float(target_px_per_mm), disc_side_linear=side,
@@ -374,8 +401,9 @@ def _object_surface(scene: SynthScene, prim: np.ndarray, bary_uv: np.ndarray, p_
     return _srgb_to_linear(rgb), n.astype(np.float32)
 
 
-def _room_albedo(scene: SynthScene, p_world: np.ndarray, is_floor: np.ndarray) -> np.ndarray:
-    """Linear albedo (K, 3) of room hits: the table top or the wall."""
+def _room_albedo(scene: SynthScene, p_world: np.ndarray, gid: np.ndarray) -> np.ndarray:
+    """Linear albedo (K, 3) of room hits (geometry ids ``gid``): table top, wall, backdrop."""
+    is_floor = gid == scene.floor_id
     rgb = np.empty((len(p_world), 3), np.float32)
     pf = p_world[is_floor]
     c = (scene.floor_linear.shape[0] - 1) / 2.0
@@ -383,9 +411,11 @@ def _room_albedo(scene: SynthScene, p_world: np.ndarray, is_floor: np.ndarray) -
                               pf[:, 0] * scene.floor_px_per_mm + c)
     pw = p_world[~is_floor]
     h, w = scene.wall_linear.shape[:2]
-    col = ((np.arctan2(pw[:, 2], pw[:, 0]) + np.pi) / (2 * np.pi) * w).astype(np.int64) % w
-    row = np.clip(((_ROOM_HEIGHT_MM - pw[:, 1]) / _ROOM_HEIGHT_MM * h).astype(np.int64), 0, h - 1)
-    rgb[~is_floor] = scene.wall_linear[row, col]
+    col = (np.arctan2(pw[:, 2], pw[:, 0]) + np.pi) / (2 * np.pi) * w
+    flat = gid[~is_floor] == scene.backdrop_id  # flat backdrop: columns along X
+    col[flat] = pw[flat, 0] / _WALL_MM_PER_PX + 0.25 * w
+    row = (_ROOM_HEIGHT_MM - pw[:, 1]) / _WALL_MM_PER_PX
+    rgb[~is_floor] = _bilinear(scene.wall_linear, row, np.mod(col, w - 1))
     return rgb
 
 
@@ -452,7 +482,7 @@ def _shade(scene: SynthScene, d_cam: np.ndarray, L_world: np.ndarray, T_table_ca
     room = hit & ~in_tt
     if np.any(room):
         p_w = o_w.astype(np.float32) + tt[room] * d_w[room]
-        albedo[room] = _room_albedo(scene, p_w, cls[room] == _FLOOR)
+        albedo[room] = _room_albedo(scene, p_w, gid[room])
         normal_t[room] = _rotate(nrm[room], R_wt.T)  # world -> table
     flip = ~is_obj & (np.einsum("kc,kc->k", normal_t, d_t) > 0)  # face the camera
     normal_t[flip] *= -1.0

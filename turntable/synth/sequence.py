@@ -52,6 +52,8 @@ __all__ = ["SynthOptions", "make_sequence", "camera_poses", "look_at", "rot_y"]
 
 log = logging.getLogger(__name__)
 
+_BACKDROP_BEHIND_MM = 120.0  # flat backdrop this far behind the turntable's rim (turntable mode)
+
 
 @dataclass(frozen=True)
 class SynthOptions:
@@ -62,6 +64,8 @@ class SynthOptions:
     0 for PNG. ``noise`` is the sensor noise standard deviation (8-bit DN) at
     mid-grey: a read-noise floor of half of it plus shot noise growing with
     brightness. ``blur_px`` is a Gaussian optical blur (sigma, pixels).
+    ``vignette`` is the fraction of light lost in the image corners (falls
+    off with the squared distance from the principal point).
     """
 
     object: str = "vase"
@@ -75,6 +79,7 @@ class SynthOptions:
     distance_mm: float = 450.0
     noise: float = 2.0
     blur_px: float = 0.0
+    vignette: float = 0.15
     jpeg: int = 95
     backdrop: str = "dark"
     handheld: bool = False
@@ -96,6 +101,7 @@ class SynthOptions:
             (self.jitter_deg >= 0, f"--jitter-deg must be >= 0, got {self.jitter_deg}"),
             (self.noise >= 0, f"--noise must be >= 0, got {self.noise}"),
             (self.blur_px >= 0, f"--blur must be >= 0, got {self.blur_px}"),
+            (0 <= self.vignette < 1, f"--vignette must be in [0, 1), got {self.vignette}"),
             (self.jpeg == 0 or 1 <= self.jpeg <= 100, f"--jpeg must be 1-100 (or 0 for PNG), got {self.jpeg}"),
             (self.backdrop in BACKDROPS, f"--backdrop must be one of {', '.join(BACKDROPS)}, got {self.backdrop!r}"),
             (1 <= self.supersample <= 8, f"--supersample must be 1-8, got {self.supersample}"),
@@ -181,9 +187,16 @@ def camera_poses(opts: SynthOptions, object_height_mm: float, rng: np.random.Gen
     return np.zeros(n), poses, [np.eye(4)] * n
 
 
-def _sensor(rgb: np.ndarray, opts: SynthOptions, rng: np.random.Generator) -> np.ndarray:
-    """Optical blur, then Gaussian read noise plus brightness-dependent shot noise."""
+def _sensor(rgb: np.ndarray, opts: SynthOptions, K: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Vignetting and optical blur, then Gaussian read noise plus brightness-dependent shot noise."""
     img = rgb.astype(np.float32)
+    if opts.vignette > 0:
+        h, w = img.shape[:2]
+        du = np.arange(w, dtype=np.float32) - K[0, 2]
+        dv = np.arange(h, dtype=np.float32) - K[1, 2]
+        r2 = du[None, :] ** 2 + dv[:, None] ** 2
+        r2c = max(du[0] ** 2, du[-1] ** 2) + max(dv[0] ** 2, dv[-1] ** 2)
+        img *= np.power(1.0 - opts.vignette * r2 / r2c, 1.0 / 2.2)[..., None]  # linear loss, sRGB values
     if opts.blur_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), opts.blur_px)
     if opts.noise > 0:
@@ -239,7 +252,9 @@ def make_sequence(out_dir: str | os.PathLike, options: SynthOptions, overwrite: 
     spec = options.target_spec()
     intr = options.intrinsics()
     ppm = float(np.clip(1.5 * options.focal_px / (options.distance_mm - spec.r_outer_mm), 2.0, 8.0))
-    scene = build_scene(mesh, spec, options.backdrop, rng=np.random.default_rng(seeds[1]), target_px_per_mm=ppm)
+    backdrop_mm = None if options.handheld else _BACKDROP_BEHIND_MM + spec.r_outer_mm + 40.0
+    scene = build_scene(mesh, spec, options.backdrop, rng=np.random.default_rng(seeds[1]), target_px_per_mm=ppm,
+                        backdrop_distance_mm=backdrop_mm)
     height = float(np.asarray(mesh.vertices)[:, 1].max())
     angles, T_cam_tables, T_world_tables = camera_poses(options, height, np.random.default_rng(seeds[2]))
     noise_rngs = [np.random.default_rng(s) for s in seeds[3].spawn(options.frames)]
@@ -256,7 +271,7 @@ def make_sequence(out_dir: str | os.PathLike, options: SynthOptions, overwrite: 
             rgb, mask = render_view(scene, intr.K, T_cam_tables[k], (intr.width, intr.height),
                                     dist=intr.dist if intr.has_distortion else None,
                                     supersample=options.supersample, T_world_table=T_world_tables[k])
-            img = _sensor(rgb, options, noise_rngs[k])
+            img = _sensor(rgb, options, intr.K, noise_rngs[k])
             name = f"frame_{k:03d}.{ext}"
             params = [cv2.IMWRITE_JPEG_QUALITY, int(options.jpeg)] if ext == "jpg" else []
             if not cv2.imwrite(str(tmp / "images" / name), img[..., ::-1], params):
@@ -285,6 +300,7 @@ def make_sequence(out_dir: str | os.PathLike, options: SynthOptions, overwrite: 
             "paper_radius_mm": scene.paper_radius_mm,
             "disc_radius_mm": scene.disc_radius_mm,
             "disc_thickness_mm": 15.0,
+            "backdrop_distance_mm": backdrop_mm,
             "target_px_per_mm": ppm,
             "light_dir_world": scene.light_dir_world.tolist(),
             "object_height_mm": height,
