@@ -58,8 +58,8 @@ __all__ = [
 # (relative, on the radius ratio). Measured scatter: <= 1.1 % at 2 px noise
 # (paper view, 200 points per ring), so 3 % refuses e.g. 50/30 labelled 50/28.
 RADIUS_RATIO_TOL = 0.03
-# Poles of the vanishing line w.r.t. the conics must agree within this fraction
-# of the outer ellipse's size (pixels) for the conics to be concentric.
+# Poles of the vanishing line w.r.t. the further edge conics must agree within
+# this fraction of the outer ellipse's size (+1 px) for them to be concentric.
 CONCENTRIC_TOL = 0.02
 
 
@@ -216,7 +216,12 @@ def _measured_ratio(rings, fits, rho, radii) -> float:
 
 
 def _check_concentric(conics, l, c) -> None:
-    """Raise unless the pole of ``l`` w.r.t. every conic is the centre ``c``."""
+    """Raise unless the pole of ``l`` w.r.t. every conic is the centre ``c``.
+
+    For the two conics that define ``c`` and ``l`` this holds by construction
+    (any two conics share a self-polar triangle), so it tests only the other
+    edge conics; ``calib.calibrate`` tests the whole model by its residuals.
+    """
     from .conics import conic_to_ellipse
 
     try:
