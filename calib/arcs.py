@@ -38,6 +38,11 @@ class Arcs:
         ``x = (u - norm[0]) / norm[2]``, ``y = (v - norm[1]) / norm[2]``.
     samples_px : (A, Q, 2) float64
         Q pixels of each arc (pixels), spread along it.
+    ends_px : (A, 2, 2) float64
+        The two end pixels of each arc (extremes along its principal axis).
+    quadrant : (A,) int
+        Gradient quadrant of the arc in angular order: 0 for ``(g_u, g_v)``
+        signs ``(+, +)``, 1 ``(-, +)``, 2 ``(-, -)``, 3 ``(+, -)``.
     norm : (3,) float64
         ``(u0, v0, scale)`` of the normalisation.
     """
@@ -45,6 +50,8 @@ class Arcs:
     length: np.ndarray
     scatter: np.ndarray
     samples_px: np.ndarray
+    ends_px: np.ndarray
+    quadrant: np.ndarray
     norm: np.ndarray
 
 
@@ -61,7 +68,7 @@ class ArcEllipse:
     coverage: float
 
 
-def extract_arcs(grey: np.ndarray, *, min_length: int = 12, samples: int = 8,
+def extract_arcs(grey: np.ndarray, *, min_length: int = 12, samples: int = 6,
                  low_frac: float = 0.15, high_frac: float = 0.35) -> Arcs:
     """Arcs of the Canny edges of ``grey`` (H, W) uint8.
 
@@ -78,15 +85,18 @@ def extract_arcs(grey: np.ndarray, *, min_length: int = 12, samples: int = 8,
     gy = cv2.Sobel(g, cv2.CV_16S, 0, 1, ksize=3)
     gain = 3.0  # Sobel 3x3 peak response per grey level of a sigma-1 blurred step
     edges = cv2.Canny(gx, gy, low_frac * gain * contrast, high_frac * gain * contrast, L2gradient=True)
-    quad = ((gx >= 0).astype(np.uint8) + 2 * (gy >= 0).astype(np.uint8))
+    # gradient quadrant in angular order: 0 (+,+), 1 (-,+), 2 (-,-), 3 (+,-)
+    quad = np.where(gx >= 0, np.where(gy >= 0, 0, 3), np.where(gy >= 0, 1, 2)).astype(np.uint8)
     labels = np.zeros((h, w), np.int32)
     n_total = 0
+    quads = []
     for q in range(4):
         m = ((edges > 0) & (quad == q)).astype(np.uint8)
         n, lab = cv2.connectedComponents(m, connectivity=8, ltype=cv2.CV_32S)
         sel = lab > 0
         labels[sel] = lab[sel] + n_total
         n_total += n - 1
+        quads.append(np.full(n - 1, q))
     vs, us = np.nonzero(labels)
     lab = labels[vs, us] - 1
     counts = np.bincount(lab, minlength=n_total)
@@ -106,7 +116,28 @@ def extract_arcs(grey: np.ndarray, *, min_length: int = 12, samples: int = 8,
     pick = starts[:, None] + (np.arange(samples)[None, :] * length[:, None]) // samples
     pts = np.column_stack([us, vs])[order]
     samples_px = pts[pick] if n_arcs else np.zeros((0, samples, 2))
-    return Arcs(length=length, scatter=scatter, samples_px=samples_px, norm=norm)
+    ends_px = _ends(pts, lab[order], length, starts)
+    quadrant = np.concatenate(quads)[keep]
+    return Arcs(length=length, scatter=scatter, samples_px=samples_px, ends_px=ends_px, quadrant=quadrant,
+                norm=norm)
+
+
+def _ends(pts: np.ndarray, lab: np.ndarray, length: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """End pixels (A, 2, 2) of arcs whose pixels ``pts`` are grouped by label ``lab``."""
+    n = len(length)
+    if n == 0:
+        return np.zeros((0, 2, 2))
+    mean = np.stack([np.bincount(lab, pts[:, k], n) for k in (0, 1)], 1) / length[:, None]
+    d = pts - mean[lab]
+    sxx = np.bincount(lab, d[:, 0] ** 2, n)
+    sxy = np.bincount(lab, d[:, 0] * d[:, 1], n)
+    syy = np.bincount(lab, d[:, 1] ** 2, n)
+    ang = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # principal axis
+    proj = d[:, 0] * np.cos(ang)[lab] + d[:, 1] * np.sin(ang)[lab]
+    key_max = np.lexsort((proj, lab))  # sorted by label, then projection
+    first = key_max[starts]
+    last = key_max[starts + length - 1]
+    return np.stack([pts[first], pts[last]], axis=1)
 
 
 def _scatter(x: np.ndarray, y: np.ndarray, lab: np.ndarray, n: int) -> np.ndarray:
@@ -192,13 +223,15 @@ def sampson_batch(C: np.ndarray, uv_px: np.ndarray) -> np.ndarray:
 
 
 def find_ellipses(arcs: Arcs, image_size: tuple[int, int], *, tol_px: float = 1.5,
-                  n_seeds: int = 24, n_eval: int = 64, max_ellipses: int = 8,
+                  n_seeds: int = 12, n_eval: int = 80, max_ellipses: int = 12,
                   min_coverage: float = 0.2, min_axis_px: float = 4.0,
-                  min_aspect: float = 0.08) -> list[ArcEllipse]:
+                  min_aspect: float = 0.08, gap_px: float = 5.0) -> list[ArcEllipse]:
     """Ellipses made of several arcs, best supported first (RANSAC over arcs).
 
-    Hypotheses are the fits of each of the ``n_seeds`` longest arcs and of each
-    pair of them; the ``n_eval`` longest arcs vote. An arc supports a conic when
+    Hypotheses are the fits of each of the ``n_eval`` longest curved arcs, of
+    each pair of the ``n_seeds`` longest, and of chains of two or three arcs
+    whose ends are within ``gap_px`` (an ellipse edge breaks into arcs at its
+    axis-aligned tangents); the ``n_eval`` arcs vote. An arc supports a conic when
     80 % of its samples lie within ``tol_px`` (Sampson). An ellipse is kept when
     at least two arcs covering ``min_coverage`` of its perimeter support it.
     """
@@ -206,11 +239,17 @@ def find_ellipses(arcs: Arcs, image_size: tuple[int, int], *, tol_px: float = 1.
     n_arcs = len(arcs.length)
     if n_arcs < 2:
         return []
-    order = np.argsort(-arcs.length, kind="stable")
+    curved = _curvature(arcs.scatter) > 0.03
+    order = np.argsort(-np.where(curved, arcs.length, 0), kind="stable")[: np.count_nonzero(curved)]
+    if len(order) < 2:
+        return []
     ev = order[:n_eval]
     seeds = order[:n_seeds]
-    i, j = np.triu_indices(len(seeds), k=0)
-    S = arcs.scatter[seeds[i]] + np.where((i != j)[:, None, None], arcs.scatter[seeds[j]], 0.0)
+    i, j = np.triu_indices(len(seeds), k=1)
+    ai, aj, ti, tj, tk = _adjacent(arcs.ends_px[ev], arcs.quadrant[ev], gap_px)
+    sc = arcs.scatter[ev]
+    S = np.concatenate([arcs.scatter[seeds], arcs.scatter[seeds[i]] + arcs.scatter[seeds[j]], sc[ai] + sc[aj],
+                        sc[ti] + sc[tj] + sc[tk]])
     Q, ok = fit_scatter(S)
     C = to_pixels(Q[ok], arcs.norm)
     C = C[_plausible(C, w, h, min_axis_px, min_aspect)]
@@ -220,8 +259,9 @@ def find_ellipses(arcs: Arcs, image_size: tuple[int, int], *, tol_px: float = 1.
     lengths = arcs.length[ev].astype(np.float64)
     avail = np.ones(len(ev), bool)
     found: list[ArcEllipse] = []
-    for _ in range(max_ellipses):
+    for _ in range(4 * max_ellipses):
         score = support.astype(np.float64) @ (lengths * avail)
+        score[(support.astype(np.int32) @ avail.astype(np.int32)) < 2] = 0.0
         best = int(np.argmax(score))
         if score[best] <= 0:
             break
@@ -239,13 +279,50 @@ def find_ellipses(arcs: Arcs, image_size: tuple[int, int], *, tol_px: float = 1.
         a, b, _ = _axes(conic[None])
         perimeter = np.pi * (3 * (a[0] + b[0]) - np.sqrt((3 * a[0] + b[0]) * (a[0] + 3 * b[0])))
         cov = float(lengths[members].sum() / perimeter) if np.isfinite(perimeter) else 0.0
-        avail &= ~(members | support[best])
         if np.count_nonzero(members) >= 2 and cov >= min_coverage:
             found.append(ArcEllipse(conic=conic, arc_ids=ev[members], support_px=float(lengths[members].sum()),
                                     coverage=cov))
-        if not avail.any():
+            avail &= ~(members | support[best])
+        else:
+            support[best] = False
+        if not avail.any() or len(found) == max_ellipses:
             break
     return found
+
+
+def _adjacent(ends: np.ndarray, quadrant: np.ndarray, gap_px: float):
+    """Index pairs (i, j) and triples (i, j, k) of arcs chained end to end within ``gap_px``.
+
+    Chained arcs of one ellipse edge have gradients in neighbouring quadrants.
+    """
+    n = len(ends)
+    e = ends.reshape(-1, 2)
+    d = np.linalg.norm(e[:, None, :] - e[None, :, :], axis=2).reshape(n, 2, n, 2).min(axis=(1, 3))
+    dq = (quadrant[:, None] - quadrant[None, :]) % 4
+    adj = (d < gap_px) & ((dq == 1) | (dq == 3))
+    ai, aj = np.nonzero(np.triu(adj, 1))
+    # triples: j in the middle, two distinct neighbours i < k
+    tj, ti, tk = [], [], []
+    for m in range(n):
+        nb = np.flatnonzero(adj[m])
+        if len(nb) >= 2:
+            p, q = np.triu_indices(len(nb), 1)
+            tj.append(np.full(len(p), m))
+            ti.append(nb[p])
+            tk.append(nb[q])
+    cat = (lambda v: np.concatenate(v) if v else np.zeros(0, np.int64))  # noqa: E731
+    return ai, aj, cat(ti), cat(tj), cat(tk)
+
+
+def _curvature(S: np.ndarray) -> np.ndarray:
+    """sqrt(minor / major) eigenvalue of each arc's point covariance (A,): 0 for a straight arc."""
+    n = S[:, 5, 5]
+    mx, my = S[:, 3, 5] / n, S[:, 4, 5] / n
+    sxx, sxy, syy = S[:, 0, 5] / n - mx * mx, S[:, 1, 5] / n - mx * my, S[:, 2, 5] / n - my * my
+    tr, det = sxx + syy, sxx * syy - sxy * sxy
+    disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0.0))
+    lo, hi = tr / 2 - disc, tr / 2 + disc
+    return np.sqrt(np.maximum(lo, 0.0) / np.maximum(hi, 1e-300))
 
 
 def _plausible(C: np.ndarray, w: int, h: int, min_axis_px: float, min_aspect: float) -> np.ndarray:

@@ -104,7 +104,7 @@ def sample_profiles(grey: np.ndarray, uv_px: np.ndarray, normals: np.ndarray,
     s = np.asarray(offsets_px, np.float32)[None, :]
     mx = (uv_px[:, 0:1] + s * normals[:, 0:1]).astype(np.float32)
     my = (uv_px[:, 1:2] + s * normals[:, 1:2]).astype(np.float32)
-    prof = cv2.remap(grey, mx, my, interpolation=cv2.INTER_LINEAR,
+    prof = cv2.remap(grey, mx, my, interpolation=cv2.INTER_CUBIC,
                      borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
     return prof
 

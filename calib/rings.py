@@ -39,11 +39,13 @@ __all__ = ["detect_rings", "pencil_ratio", "edge_conic", "COARSE_SIZE_PX"]
 log = logging.getLogger(__name__)
 
 COARSE_SIZE_PX = 640        # long side of the coarse search image
-CONCENTRIC_TOL = 0.12       # max relative split of the pencil's double eigenvalue
-RATIO_TOL = 0.04            # relative tolerance on the radius ratio (coarse: + stroke)
+COARSE_CONCENTRIC_TOL = 0.45  # coarse pairs: max sqrt of the pencil's relative eigenvalue split
+COARSE_RATIO_TOL = 0.12     # coarse pairs: relative tolerance on the radius ratio (plus the stroke)
+CONCENTRIC_TOL = 0.1        # refined pair: max sqrt split (about centre offset / inner radius)
+RATIO_TOL = 0.03            # refined pair: relative tolerance on the radius ratio
+MAX_PAIRS = 3               # coarse pairs tried at full resolution, best first
 MAX_OUTLIER_PX = 3.0        # Sampson distance beyond which an edge point is dropped
 MIN_EDGE_POINTS = 30
-
 
 def pencil_ratio(C_big: np.ndarray, C_small: np.ndarray) -> tuple[float, float, float]:
     """Concentricity and radius ratio of two image conics of coplanar circles.
@@ -135,37 +137,40 @@ def _centre_distance(C1: np.ndarray, C2: np.ndarray) -> float:
     return float(np.linalg.norm(conic_center(C1) - conic_center(C2)))
 
 
-def _choose_pair(rings: list[tuple[np.ndarray, float]], spec: TargetSpec) -> tuple[np.ndarray, np.ndarray]:
-    """The (outer, inner) centre-line conics; CalibrationError saying why none fits."""
+def _candidate_pairs(rings: list[tuple[np.ndarray, float]], spec: TargetSpec) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(outer, inner) conic pairs that may be the target, best supported first.
+
+    Raises CalibrationError saying why no pair of ellipses can be the target.
+    """
     if not rings:
         raise CalibrationError("no ring found")
     if len(rings) == 1:
         c = conic_center(rings[0][0])
         raise CalibrationError(f"inner ring not found: only one ring-like ellipse, centre ({c[0]:.0f}, {c[1]:.0f}) px")
     hw = spec.stroke_mm / 2
-    r_lo = (spec.r_outer_mm - hw) / (spec.r_inner_mm + hw) * (1 - RATIO_TOL)
-    r_hi = (spec.r_outer_mm + hw) / (spec.r_inner_mm - hw) * (1 + RATIO_TOL)
-    best, concentric = None, None
-    closest = None
+    r_lo = (spec.r_outer_mm - hw) / (spec.r_inner_mm + hw) * (1 - COARSE_RATIO_TOL)
+    r_hi = (spec.r_outer_mm + hw) / (spec.r_inner_mm - hw) * (1 + COARSE_RATIO_TOL)
+    good, concentric, strongest = [], None, None
     for i in range(len(rings)):
         for j in range(i + 1, len(rings)):
             (Ci, si), (Cj, sj) = rings[i], rings[j]
             big, small = (Ci, Cj) if _area(Ci) >= _area(Cj) else (Cj, Ci)
             split, ratio, _ = pencil_ratio(big, small)
             score = si + sj
-            if closest is None or score > closest[0]:
-                closest = (score, _centre_distance(big, small))
-            if split >= CONCENTRIC_TOL:
+            if strongest is None or score > strongest[0]:
+                strongest = (score, _centre_distance(big, small))
+            if np.sqrt(split) >= COARSE_CONCENTRIC_TOL:
                 continue
             if concentric is None or score > concentric[0]:
                 concentric = (score, ratio)
-            if r_lo <= ratio <= r_hi and (best is None or score > best[0]):
-                best = (score, big, small)
-    if best is not None:
-        return best[1], best[2]
+            if r_lo <= ratio <= r_hi:
+                good.append((score, big, small))
+    if good:
+        good.sort(key=lambda g: -g[0])
+        return [(g[1], g[2]) for g in good[:MAX_PAIRS]]
     if concentric is not None:
         raise CalibrationError(f"radius ratio {concentric[1]:.2f} does not match the target's {spec.radius_ratio:.2f}")
-    raise CalibrationError(f"rings not concentric (centres {closest[1]:.0f} px apart)")
+    raise CalibrationError(f"rings not concentric (centres {strongest[1]:.0f} px apart)")
 
 
 def _robust_fit(uv_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -187,11 +192,26 @@ def _robust_fit(uv_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return C, keep
 
 
-def _search(gf, centre_conic, C_in, C_out, margin_px, gap_px):
-    uv, nrm = conic_samples(centre_conic, spacing_px=1.5)
+def _search_pencil(gf, C_mid, C_in, C_out, margin_px, gap_px, spacing_px):
+    """Stroke edges along the normals of ``C_mid``, edges predicted by the conics ``C_in``, ``C_out``."""
+    uv, nrm = conic_samples(C_mid, spacing_px=spacing_px, max_samples=2000)
     s_in = line_conic_offsets(C_in, uv, nrm)
     s_out = line_conic_offsets(C_out, uv, nrm)
     return find_stroke_edges(gf, uv, nrm, s_in, s_out, margin_px, gap_px=gap_px)
+
+
+def _search_scaled(gf, C_mid, half_width_rel, spacing_px):
+    """Stroke edges along the normals of ``C_mid``, half-width ``half_width_rel`` of the radius.
+
+    The predicted half-width at a sample ``p`` with normal ``n`` is
+    ``half_width_rel * n . (p - c)`` (``c`` the ellipse centre): exact for a
+    fronto-parallel circle, close enough to open the search window otherwise.
+    """
+    uv, nrm = conic_samples(C_mid, spacing_px=spacing_px, max_samples=2000)
+    c = conic_center(C_mid)
+    hw = half_width_rel * np.einsum("ij,ij->i", nrm, uv - c)
+    hw_med = float(np.median(hw))
+    return find_stroke_edges(gf, uv, nrm, -hw, hw, 2.5 + hw_med, gap_px=2.0 + 2.0 * hw_med)
 
 
 def _fit_ring(found, name: str):
@@ -241,40 +261,65 @@ def detect_rings(image, spec: TargetSpec, *, principal_point_px=None) -> TargetO
     grey = _grey(image)
     h, w = grey.shape
     conics, support = _coarse_ellipses(grey)
-    rings = _strokes(conics, support, spec)
-    Co, Ci = _choose_pair(rings, spec)
-    gf = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), 0.7)
-    hw = spec.stroke_mm / 2
+    pairs = _candidate_pairs(_strokes(conics, support, spec), spec)
+    first_error = None
+    for Co, Ci in pairs:
+        try:
+            return _fine(grey, Co, Ci, spec)
+        except CalibrationError as exc:
+            first_error = first_error or exc
+    raise first_error
+
+
+def _fine(grey: np.ndarray, Co: np.ndarray, Ci: np.ndarray, spec: TargetSpec) -> TargetObservation:
+    """Full-resolution edges of the pair of coarse ring conics ``Co``, ``Ci`` (module docstring, 4.)."""
+    h, w = grey.shape
+    gf, origin = _fine_roi(grey, Co)
     radii = {"outer": spec.r_outer_mm, "inner": spec.r_inner_mm}
-    # pass 1: from the coarse conics through the pencil
-    pred = {}
-    for name, R in radii.items():
-        C_mid = edge_conic(Co, Ci, spec, R)
-        C_in, C_out = edge_conic(Co, Ci, spec, R - hw), edge_conic(Co, Ci, spec, R + hw)
-        pred[name] = (C_mid, C_in, C_out)
+    coarse = {"outer": _shift(Co, origin), "inner": _shift(Ci, origin)}
     fits = {}
-    for name in radii:
-        C_mid, C_in, C_out = pred[name]
-        w_px = _median_width(C_mid, C_in, C_out)
-        found = _search(gf, C_mid, C_in, C_out, 2.5 + 0.5 * w_px, gap_px=2.0 + w_px)
+    for name, R in radii.items():  # pass 1: each ring on its own, from the coarse conic
+        found = _search_scaled(gf, coarse[name], spec.stroke_mm / 2.0 / R, spacing_px=3.0)
         fits[name] = _fit_ring(found, name)
-    # pass 2: from the fitted edges
-    for name in radii:
+    for name in radii:  # pass 2: from the fitted edge conics
         C_in, C_out, C_mid = fits[name][:3]
         w_px = _median_width(C_mid, C_in, C_out)
-        found = _search(gf, C_mid, C_in, C_out, 1.5 + 0.25 * w_px, gap_px=2.0 + w_px)
+        found = _search_pencil(gf, C_mid, C_in, C_out, 1.5 + 0.25 * w_px, gap_px=2.0 + w_px, spacing_px=1.5)
         fits[name] = _fit_ring(found, name)
     split, ratio, _ = pencil_ratio(fits["outer"][2], fits["inner"][2])
+    if np.sqrt(split) > CONCENTRIC_TOL:
+        d = _centre_distance(fits["outer"][2], fits["inner"][2])
+        raise CalibrationError(f"rings not concentric (centres {d:.0f} px apart)")
     if abs(ratio / spec.radius_ratio - 1.0) > RATIO_TOL:
         raise CalibrationError(f"radius ratio {ratio:.2f} does not match the target's {spec.radius_ratio:.2f}")
     edges, out_conics = [], {}
+    back = -origin
     for name, R in radii.items():
         C_in, C_out, C_mid, uv_in, uv_out = fits[name]
-        edges += [EdgePoints(uv_out, R, +1), EdgePoints(uv_in, R, -1)]
-        out_conics.update({name: C_mid, name + "+": C_out, name + "-": C_in})
+        edges += [EdgePoints(uv_out + origin, R, +1), EdgePoints(uv_in + origin, R, -1)]
+        out_conics.update({name: _shift(C_mid, back), name + "+": _shift(C_out, back),
+                           name + "-": _shift(C_in, back)})
     log.debug("rings: %d/%d/%d/%d edge points, ratio %.4f, split %.2e",
               *(len(e.uv_px) for e in edges), ratio, split)
     return TargetObservation(edges=tuple(edges), width=w, height=h, conics=out_conics)
+
+
+def _fine_roi(grey: np.ndarray, C_outer: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Float32 crop of ``grey`` around the outer ring (lightly smoothed) and its origin (u0, v0)."""
+    h, w = grey.shape
+    e = conic_to_ellipse(C_outer)
+    pad = 0.15 * e.a + 10.0
+    u0, v0 = (int(max(0, np.floor(e.center_px[i] - e.a - pad))) for i in (0, 1))
+    u1 = int(min(w, np.ceil(e.center_px[0] + e.a + pad) + 1))
+    v1 = int(min(h, np.ceil(e.center_px[1] + e.a + pad) + 1))
+    roi = grey[v0:v1, u0:u1].astype(np.float32)
+    return cv2.GaussianBlur(roi, (0, 0), 0.7), np.array([u0, v0], float)
+
+
+def _shift(C: np.ndarray, origin) -> np.ndarray:
+    """Conic in coordinates shifted by ``origin``: ``u' = u - origin``."""
+    Tr = np.array([[1.0, 0, origin[0]], [0, 1.0, origin[1]], [0, 0, 1.0]])
+    return normalize_conic(Tr.T @ C @ Tr)
 
 
 def _median_width(C_mid, C_in, C_out) -> float:

@@ -1,0 +1,174 @@
+"""Ring detection on rendered photos with known ground truth (calib.rings, calib.edges, calib.arcs)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from calib.camera import circle_conic, circle_points_table, project_points
+from calib.conics import sampson_distance
+from calib.edges import conic_samples, find_stroke_edges, line_conic_offsets
+from calib.rings import detect_rings, edge_conic, pencil_ratio
+from calib.target import TargetSpec
+from calib.types import CalibrationError
+from synthetic_images import look_at_T, render_target_photo
+
+SPEC = TargetSpec(r_outer_mm=100.0, r_inner_mm=62.5, stroke_mm=3.0)
+W, H = 1280, 960
+
+EDGE_MEDIAN_TOL_PX = 0.3      # median |Sampson| of detected edge points to the true edge conic
+EDGE_P99_TOL_PX = 1.0         # 99th percentile of the same
+CENTRE_TOL_PX = 0.5           # max |Sampson| of true centre-line points to the detected centre-line conic
+OCCLUDER_CLEARANCE_PX = 1.5   # edge points keep at least this distance from the occluding object
+
+
+def _camera(elev_deg, focal_px, rng, size=(W, H), ring_frac=0.6):
+    w, h = size
+    K = np.array([[focal_px, 0, (w - 1) / 2], [0, focal_px, (h - 1) / 2], [0, 0, 1.0]])
+    dist = 2 * SPEC.r_outer_mm * focal_px / (ring_frac * h)
+    look = rng.uniform(-20.0, 20.0, 2)
+    T = look_at_T(elev_deg, rng.uniform(0, 360), dist, look_at_table=(look[0], 0.0, look[1]),
+                  roll_deg=rng.uniform(-20, 20))
+    return K, T
+
+
+def _edge_errors(obs, K, T, spec):
+    out = []
+    for e in obs.edges:
+        C_true = circle_conic(K, T, e.ring_radius_mm + e.side * spec.stroke_mm / 2.0)
+        out.append(np.abs(sampson_distance(C_true, e.uv_px)))
+    return out
+
+
+@pytest.mark.parametrize("elev_deg, focal_px, backdrop", [
+    (15, 1000, "dark"), (15, 3000, "clutter"), (45, 1000, "light"),
+    (45, 3000, "dark"), (75, 1000, "clutter"), (75, 3000, "light"),
+])
+def test_detect_rings_accuracy(elev_deg, focal_px, backdrop):
+    rng = np.random.default_rng(1000 * elev_deg + focal_px + len(backdrop))
+    K, T = _camera(elev_deg, focal_px, rng)
+    photo = render_target_photo(SPEC, K, T, (W, H), rng=rng, backdrop=backdrop, blur_px=0.8,
+                                noise_sigma=2.5, jpeg_quality=85, gain_gradient=0.4)
+    obs = detect_rings(photo.image, SPEC)
+
+    assert (obs.width, obs.height) == (W, H)
+    assert sorted((e.ring_radius_mm, e.side) for e in obs.edges) == [
+        (62.5, -1), (62.5, 1), (100.0, -1), (100.0, 1)]
+    assert {"outer", "inner", "outer+", "outer-", "inner+", "inner-"} <= set(obs.conics)
+    for d in _edge_errors(obs, K, T, SPEC):
+        assert np.median(d) < EDGE_MEDIAN_TOL_PX
+        assert np.percentile(d, 99) < EDGE_P99_TOL_PX
+    # enough of each visible ring is used (the occluder hides up to 40 %)
+    for e in obs.edges:
+        perimeter = np.sum(np.linalg.norm(np.diff(project_points(
+            K, T, circle_points_table(e.ring_radius_mm, 720)), axis=0), axis=1))
+        assert len(e.uv_px) * 1.5 > 0.35 * perimeter
+    # centre lines
+    for name, R in (("outer", SPEC.r_outer_mm), ("inner", SPEC.r_inner_mm)):
+        pts = project_points(K, T, circle_points_table(R, 360))
+        assert np.max(np.abs(sampson_distance(obs.conics[name], pts))) < CENTRE_TOL_PX
+    # no point at or next to the occluding object
+    free = (~photo.occluder_mask).astype(np.uint8)
+    dist = cv2.distanceTransform(free, cv2.DIST_L2, 5)
+    for e in obs.edges:
+        uv = np.round(e.uv_px).astype(int)
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+        assert inside.all()
+        assert dist[uv[:, 1], uv[:, 0]].min() >= OCCLUDER_CLEARANCE_PX
+
+
+def test_detect_rings_grey_input_and_small_target():
+    rng = np.random.default_rng(7)
+    K, T = _camera(35, 1200, rng, ring_frac=0.3)
+    photo = render_target_photo(SPEC, K, T, (W, H), rng=rng, backdrop="clutter")
+    grey = cv2.cvtColor(photo.image, cv2.COLOR_BGR2GRAY)
+    obs = detect_rings(grey, SPEC)
+    for d in _edge_errors(obs, K, T, SPEC):
+        assert np.median(d) < EDGE_MEDIAN_TOL_PX
+
+
+def _bad_target_photo(rings_mm, rng, occluder=False):
+    K, T = _camera(50, 900, rng, size=(640, 480))
+    return render_target_photo(SPEC, K, T, (640, 480), rng=rng, backdrop="dark", occluder=occluder,
+                               rings_mm=rings_mm).image
+
+
+def test_blank_image_has_no_ring():
+    rng = np.random.default_rng(3)
+    img = np.full((480, 640, 3), 128, np.uint8) + rng.integers(0, 3, (480, 640, 3)).astype(np.uint8)
+    with pytest.raises(CalibrationError, match="no ring found"):
+        detect_rings(img, SPEC)
+
+
+def test_one_ring_only():
+    rng = np.random.default_rng(4)
+    img = _bad_target_photo([(0.0, 0.0, SPEC.r_outer_mm)], rng)
+    with pytest.raises(CalibrationError, match="inner ring not found"):
+        detect_rings(img, SPEC)
+
+
+def test_rings_not_concentric():
+    rng = np.random.default_rng(5)
+    img = _bad_target_photo([(0.0, 0.0, SPEC.r_outer_mm), (25.0, 5.0, SPEC.r_inner_mm)], rng)
+    with pytest.raises(CalibrationError, match=r"rings not concentric \(centres \d+ px apart\)"):
+        detect_rings(img, SPEC)
+
+
+def test_wrong_radius_ratio():
+    rng = np.random.default_rng(6)
+    img = _bad_target_photo([(0.0, 0.0, SPEC.r_outer_mm), (0.0, 0.0, 80.0)], rng)
+    with pytest.raises(CalibrationError, match=r"radius ratio 1\.2\d does not match the target's 1\.60"):
+        detect_rings(img, SPEC)
+
+
+@pytest.mark.parametrize("bad", [np.zeros((10, 10), np.float32), np.zeros((10, 10, 4), np.uint8)])
+def test_bad_image_argument(bad):
+    with pytest.raises(ValueError):
+        detect_rings(bad, SPEC)
+
+
+def test_pencil_ratio_and_edge_conics_exact():
+    rng = np.random.default_rng(8)
+    K, T = _camera(rng.uniform(15, 75), 1500, rng)
+    Co, Ci = circle_conic(K, T, SPEC.r_outer_mm), circle_conic(K, T, SPEC.r_inner_mm)
+    split, ratio, _ = pencil_ratio(Co, Ci)
+    assert split < 1e-9
+    assert ratio == pytest.approx(SPEC.radius_ratio, rel=1e-9)
+    for r in (SPEC.r_inner_mm - 1.5, SPEC.r_outer_mm + 1.5, 40.0):
+        C = edge_conic(Co, Ci, SPEC, r)
+        pts = project_points(K, T, circle_points_table(r, 64))
+        assert np.max(np.abs(sampson_distance(C, pts))) < 1e-6
+    # non-concentric circles split the double eigenvalue
+    T2 = T.copy()
+    T2[:3, 3] += T[:3, 0] * 20.0  # shift the inner circle 20 mm along table X
+    split2, _, _ = pencil_ratio(Co, circle_conic(K, T2, SPEC.r_inner_mm))
+    assert np.sqrt(split2) > 0.2  # about offset / inner radius = 0.32
+
+
+def test_stroke_edges_subpixel_on_ideal_ring():
+    # a blurred ring of known edge radii, drawn analytically (no perspective)
+    rng = np.random.default_rng(9)
+    c = np.array([200.3, 190.7])
+    r_in, r_out = 120.0 + rng.uniform(0, 1), 127.0 + rng.uniform(0, 1)
+    v, u = np.mgrid[0:400, 0:400].astype(np.float64)
+    r = np.hypot(u - c[0], v - c[1])
+    sigma = 1.0
+    from scipy.special import erf
+    step = lambda x: 0.5 * (1 + erf(x / (np.sqrt(2) * sigma)))  # noqa: E731
+    img = 230 - 200 * (step(r - r_in) - step(r - r_out))
+    img = (img + rng.normal(0, 1.0, img.shape)).astype(np.float32)
+    C_mid = np.diag([1.0, 1.0, 0.0])
+    C_mid[:2, 2] = C_mid[2, :2] = -c
+    C_mid[2, 2] = c @ c - (0.5 * (r_in + r_out)) ** 2
+    uv, nrm = conic_samples(C_mid, spacing_px=2.0)
+    off = (r_out - r_in) / 2
+    found = find_stroke_edges(img, uv, nrm, np.full(len(uv), -off), np.full(len(uv), off), 3.0)
+    assert found.ok.mean() > 0.99
+    err_in = np.abs(np.linalg.norm(found.inner_uv_px[found.ok] - c, axis=1) - r_in)
+    err_out = np.abs(np.linalg.norm(found.outer_uv_px[found.ok] - c, axis=1) - r_out)
+    assert np.median(err_in) < 0.05 and np.median(err_out) < 0.05
+    # line_conic_offsets finds the predicted circle exactly
+    C_out = C_mid.copy()
+    C_out[2, 2] = c @ c - r_out ** 2
+    assert np.allclose(line_conic_offsets(C_out, uv, nrm), r_out - 0.5 * (r_in + r_out), atol=1e-6)
