@@ -3,7 +3,7 @@
 import numpy as np
 
 from calib.camera import make_T, rotation_from_normal
-from tests.rrd_util import pinhole_K, rrd_column, rrd_rows
+from rrd_util import pinhole_K, rrd_column, rrd_rows
 from turntable.recording import Recorder
 
 
