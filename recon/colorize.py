@@ -234,14 +234,17 @@ def _clean_footprint(scene, C, R, K, uv_px, z, cos, W, H, tol):
     import open3d as o3d
 
     u0, v0 = _footprint(uv_px, W, H)
-    u = (u0[:, None] + np.array([0, 1, 0, 1])).ravel().astype(np.float32)
-    v = (v0[:, None] + np.array([0, 0, 1, 1])).ravel().astype(np.float32)
+    # Neighbouring vertices share pixels: cast each pixel's ray once.
+    pixel = ((v0[:, None] + np.array([0, 0, 1, 1])) * W + (u0[:, None] + np.array([0, 1, 0, 1]))).ravel()
+    unique, inverse = np.unique(pixel, return_inverse=True)
+    u = (unique % W).astype(np.float32)
+    v = (unique // W).astype(np.float32)
     # Direction R^T K^-1 (u, v, 1): unit z in the camera, so t_hit is the z-depth.
     M = (R.T @ np.linalg.inv(K)).astype(np.float32)
-    rays = np.empty((len(u), 6), dtype=np.float32)
+    rays = np.empty((len(unique), 6), dtype=np.float32)
     rays[:, :3] = C
     rays[:, 3:] = u[:, None] * M[:, 0] + v[:, None] * M[:, 1] + M[:, 2]
-    z_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().reshape(-1, 4)
+    z_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()[inverse].reshape(-1, 4)
     tan = np.sqrt(np.maximum(1.0 - cos**2, 0.0)) / cos
     allow = tol + 1.5 * z * tan / K[0, 0]
     return np.all(np.abs(z_hit - z[:, None]) < allow[:, None], axis=1)
