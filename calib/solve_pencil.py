@@ -136,6 +136,31 @@ def _distinct_eigen(Ca: np.ndarray, Cb: np.ndarray) -> float:
     return float(np.real(lam[int(np.argmin(gaps))]))
 
 
+def _centre_and_vanishing_line(Ca: np.ndarray, Cb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Projected centre ``c`` (3,), ``c_3 = 1``, and unit vanishing line ``l`` of a concentric pair."""
+    lam = _distinct_eigen(Ca, Cb)
+    _, _, Vt = np.linalg.svd(Ca - lam * Cb)
+    c = Vt[-1] / Vt[-1][2]
+    l = Ca @ c
+    return c, l / np.linalg.norm(l)
+
+
+def _scaled_members(conics, c, l) -> tuple[list[np.ndarray], np.ndarray]:
+    """Per conic ``A_j = (C_j + mu_j l l^T) / s_j`` (null vector ``c``) and ``rho_j = mu_j / s_j``.
+
+    Then ``C_j / s_j = A_j - rho_j l l^T`` with ``rho_j = beta r_j^2``.
+    """
+    lc = float(l @ c)
+    A_list, rho = [], []
+    for C in conics:
+        mu = -float(c @ C @ c) / lc**2
+        Aj = C + mu * np.outer(l, l)
+        s = np.linalg.norm(Aj) * np.sign(np.trace(Aj))
+        A_list.append(Aj / s)
+        rho.append(mu / s)
+    return A_list, np.array(rho)
+
+
 def concentric_conics(
     fits: list[tuple[np.ndarray, EdgePoints]], stroke_mm: float
 ) -> ConcentricConics:
@@ -162,31 +187,24 @@ def concentric_conics(
     radii = np.array([e.radius_mm(stroke_mm) for _, e in fits])
     if np.any(radii <= 0):
         raise ValueError(f"stroke {stroke_mm} mm gives a non-positive edge radius")
+    # Centre and vanishing line from the two most different radii first; with
+    # stroke edges, again from the centre-line conics, in which a constant
+    # pixel offset of the detected edges (blur, threshold) cancels to first order.
     ia, ib = int(np.argmax(radii)), int(np.argmin(radii))
-    lam = _distinct_eigen(conics[ia], conics[ib])
-    _, _, Vt = np.linalg.svd(conics[ia] - lam * conics[ib])
-    c = Vt[-1] / Vt[-1][2]
-    l = conics[ia] @ c
-    l = l / np.linalg.norm(l)
-    # Scale every conic to C_j / s_j = A - r_j^2 beta l l^T.
-    lc = float(l @ c)
-    A_list, rho = [], []
-    for C in conics:
-        mu = -float(c @ C @ c) / lc**2
-        Aj = C + mu * np.outer(l, l)
-        s = np.linalg.norm(Aj) * np.sign(np.trace(Aj))
-        A_list.append(Aj / s)
-        rho.append(mu / s)  # = beta * r_j^2
-    rho = np.array(rho)
+    Ca, Cb = conics[ia], conics[ib]
+    for _ in range(2 if any(e.side != 0 for _, e in fits) else 1):
+        c, l = _centre_and_vanishing_line(Ca, Cb)
+        A_list, rho = _scaled_members(conics, c, l)
+        beta = float(rho @ radii**2 / (radii**2 @ radii**2))
+        ll = np.outer(l, l)
+        centre_line = {}
+        for R in rings:
+            idx = [j for j, (_, e) in enumerate(fits) if e.ring_radius_mm == R]
+            members = [A_list[j] - (rho[j] - (radii[j] ** 2 - R**2) * beta) * ll for j in idx]
+            centre_line[R] = normalize_conic(np.mean(members, axis=0))
+        Ca, Cb = centre_line[rings[0]], centre_line[rings[-1]]
     _check_concentric(conics, l, c)
-    beta = float(rho @ radii**2 / (radii**2 @ radii**2))
     A = np.mean(A_list, axis=0)
-    ll = np.outer(l, l)
-    centre_line = {}
-    for R in rings:
-        idx = [j for j, (_, e) in enumerate(fits) if e.ring_radius_mm == R]
-        members = [A_list[j] - (rho[j] - (radii[j] ** 2 - R**2) * beta) * ll for j in idx]
-        centre_line[R] = normalize_conic(np.mean(members, axis=0))
     ratio = _measured_ratio(rings, fits, rho, radii)
     nominal = rings[0] / rings[1]
     if abs(ratio / nominal - 1.0) > RADIUS_RATIO_TOL:
