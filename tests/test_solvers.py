@@ -173,6 +173,28 @@ def test_refine_stroke_estimate_under_noise():
     assert cal.std.stroke_mm < 0.03 * true  # "within a few %"
 
 
+def test_refine_absorbs_a_constant_pixel_offset_of_the_detected_edges():
+    # blur and threshold pull both edges of a stroke inwards by the same number
+    # of pixels; no width in mm reproduces that under perspective
+    K, T = _paper_view()
+    offset_px = 0.4
+    edges = []
+    for R in (R1, R2):
+        for side in (-1, 1):
+            r = R + side * 1.5
+            uv = project_points(K, T, circle_points_table(r, 720))
+            C = normalize_conic(circle_conic(K, T, r))
+            grad = (np.column_stack([uv, np.ones(len(uv))]) @ C.T)[:, :2]
+            uv -= side * offset_px * grad / np.linalg.norm(grad, axis=1, keepdims=True)
+            edges.append(EdgePoints(uv, R, side))
+    obs = TargetObservation(tuple(edges), W, H)
+    cal = calibrate_view(obs, TargetSpec(R1, R2, 3.0))
+    assert _rel(cal.intrinsics.focal_px, K[0, 0]) < 2e-4
+    assert cal.stroke_mm == pytest.approx(3.0, rel=0.01)
+    r = refine_view(obs.edges, cal.intrinsics.K, cal.T_cam_table, 3.0)
+    assert r.edge_offset_px == pytest.approx(offset_px, abs=0.01)
+
+
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_refine_error_within_reported_sigma(seed):
     rng = np.random.default_rng(seed)
@@ -268,6 +290,7 @@ def test_edge_linearisation_matches_finite_differences():
         (central(lambda h: res(cy=cy + h), 1e-3), L.d_principal[:, 1]),
         (central(lambda h: res(w=w + h), 1e-3), L.d_stroke),
     ]
+    np.testing.assert_array_equal(L.d_offset, side)
     cases += [(central(lambda h, i=i: res(t=t + h * np.eye(3)[i]), 1e-4), L.d_t[:, i]) for i in range(3)]
     cases += [(central(lambda h, v=v: res(n=n + h * v), 1e-7), L.d_normal @ v) for v in tangent]
     for numeric, analytic in cases:
