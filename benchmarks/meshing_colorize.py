@@ -9,11 +9,15 @@ import argparse
 import datetime
 import os
 import platform
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
 import trimesh
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run without installing
 
 from recon.colorize import color_vertices
 from recon.meshing import mesh_from_hull, mesh_stats

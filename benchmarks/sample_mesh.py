@@ -16,6 +16,7 @@ import json
 import os
 import platform
 import tempfile
+import sys
 import time
 from pathlib import Path
 
@@ -23,6 +24,8 @@ import cv2
 import numpy as np
 import open3d as o3d
 import trimesh
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run without installing
 
 from recon.carving import carve_hull
 from recon.colorize import color_vertices
