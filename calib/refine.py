@@ -431,5 +431,6 @@ def _result(prob: _Problem, p, e, J) -> RefineResult:
     )
     return RefineResult(
         focal_px=float(f), T_cam_table=make_T(rotation_from_normal(n), t), stroke_mm=float(w),
-        edge_offset_px=float(delta), edge_offset_std_px=float(sd[7]) if prob.fit_w else float("nan"), std=std, rms_px=float(np.sqrt(np.mean(e**2))), n_points=len(e),
+        edge_offset_px=float(delta), edge_offset_std_px=float(sd[7]) if prob.fit_w else float("nan"),
+        std=std, rms_px=float(np.sqrt(np.mean(e**2))), n_points=len(e),
     )

@@ -51,7 +51,9 @@ def _line_conic_params(C: np.ndarray, p0: np.ndarray, d: np.ndarray) -> np.ndarr
     return np.sort([(-b - r) / a, (-b + r) / a])
 
 
-def projected_centre_cross_ratio(C_outer: np.ndarray, C_inner: np.ndarray, r_outer: float, r_inner: float) -> np.ndarray:
+def projected_centre_cross_ratio(
+    C_outer: np.ndarray, C_inner: np.ndarray, r_outer: float, r_inner: float
+) -> np.ndarray:
     """Image of the common centre of two concentric circles (eq. 13–16).
 
     Parameters
