@@ -245,3 +245,24 @@ def test_highlight_in_one_view_is_rejected_and_unseen_vertices_are_filled():
     images[1][55:65, 75:85] = 255  # a specular blob in the middle of the middle view
     out = color_vertices(mesh, images, K_TEST, np.array(poses))
     assert np.abs(out.colors_rgb.astype(int) - (60, 90, 150)).max() <= 2  # everywhere, seen or not
+
+
+def test_decimation_that_opens_the_mesh_falls_back_to_a_watertight_remesh(monkeypatch):
+    import recon.meshing as meshing
+
+    real = o3d.geometry.TriangleMesh.simplify_quadric_decimation
+    calls = []
+
+    def leaky(self, target_number_of_triangles):  # a decimator that loses one triangle
+        calls.append(target_number_of_triangles)
+        out = real(self, target_number_of_triangles=target_number_of_triangles)
+        out.triangles = o3d.utility.Vector3iVector(np.asarray(out.triangles)[1:])
+        return out
+
+    monkeypatch.setattr(o3d.geometry.TriangleMesh, "simplify_quadric_decimation", leaky)
+    hull = sphere_hull(20.0, 1.0, (0, 0, 0))
+    mesh = meshing.mesh_from_hull(hull, max_faces=2000)
+    stats = mesh_stats(mesh)
+    assert calls == [2000]
+    assert stats.watertight and 500 < stats.n_faces <= 2000
+    assert abs(stats.volume_mm3 / (4 / 3 * np.pi * 20.0**3) - 1) < 0.03
