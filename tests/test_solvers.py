@@ -102,6 +102,17 @@ def test_pencil_centre_line_conics_are_insensitive_to_the_nominal_stroke():
     np.testing.assert_allclose(cc.centre_px, centre, atol=1e-6)
 
 
+def test_pencil_pose_with_a_known_focal_length_is_exact():
+    from calib.solve_pencil import solve_pencil
+
+    K, T = _tilted_view(25.0, t=(-40.0, 30.0, 500.0))
+    cc = concentric_conics(fit_edge_conics(_observe(K, T).edges), 0.0)
+    f, T_est = solve_pencil(cc, K[:2, 2], focal_px=K[0, 0])
+    assert f == K[0, 0]
+    assert angle_between_deg(T_est[:3, 1], T[:3, 1]) < 1e-6
+    np.testing.assert_allclose(T_est[:3, 3], T[:3, 3], rtol=EXACT)
+
+
 def test_cross_ratio_centre_is_the_image_of_the_circle_centre():
     K, T = _paper_view()
     c = projected_centre_cross_ratio(circle_conic(K, T, R1), circle_conic(K, T, R2), R1, R2)
