@@ -343,11 +343,12 @@ def _crossing(d: np.ndarray, cols: np.ndarray, pred: float) -> float | None:
         lo -= 1
     while hi < min(k + 4, d.size - 1) and abs(d[hi + 1]) < 0.7 * amp and s[hi + 1] == s[k + 1]:
         hi += 1
-    x, y = cols[lo:hi + 1].astype(float), d[lo:hi + 1]
-    slope, icpt = np.polyfit(x, y, 1)
+    x, y = cols[lo:hi + 1].astype(float), d[lo:hi + 1].astype(float)
+    xm, ym = x.mean(), y.mean()
+    slope = float(((x - xm) * (y - ym)).sum() / ((x - xm) ** 2).sum())   # least-squares line
     if slope == 0:
         return None
-    root = -icpt / slope
+    root = xm - ym / slope
     return float(root) if cols[k] - 1 <= root <= cols[k + 1] + 1 else None
 
 
