@@ -42,7 +42,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from .camera import plane_homography
+from .camera import camera_centre_table, plane_homography
 from .target import TargetSpec, mark_edges, mark_halfcells
 from .types import CalibrationError
 
@@ -150,7 +150,7 @@ def read_turntable_angle(image: np.ndarray, K: np.ndarray, T_cam_table: np.ndarr
         "angle marks unreadable: ..." when too little of the track is visible,
         the code does not match, or the match is ambiguous.
     ValueError
-        Bad argument shapes.
+        Bad argument shapes, or a pose whose table +Y points away from the camera.
     """
     grey = _grey(image)
     K = np.asarray(K, dtype=np.float64)
@@ -159,6 +159,9 @@ def read_turntable_angle(image: np.ndarray, K: np.ndarray, T_cam_table: np.ndarr
         raise ValueError(f"K must be (3, 3) and T_cam_table (4, 4), got {K.shape}, {T.shape}")
     if not spec.marks:
         raise CalibrationError("angle marks unreadable: the target spec has no marks")
+    if camera_centre_table(T)[1] <= 0.0:
+        raise ValueError("T_cam_table: the table's +Y must point to the camera's side (README conventions); "
+                         "a flipped normal mirrors the angle")
     bands = _polar_bands(grey, K, T, spec, dist)
     valid, contrast = _visible(bands)
     track = bands["track"].mean(axis=0)

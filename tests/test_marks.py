@@ -302,6 +302,9 @@ def test_refuses_a_target_without_marks():
         read_turntable_angle(img, K, T, plain)
     with pytest.raises(ValueError):
         read_turntable_angle(img, K[:2], T, SPEC)
+    flipped = T @ np.diag([1.0, -1.0, -1.0, 1.0])        # right-handed, but +Y away from the camera
+    with pytest.raises(ValueError, match="camera's side"):
+        read_turntable_angle(img, K, flipped, SPEC)
 
 
 def _distort(img, K, dist):
