@@ -118,21 +118,45 @@ def hull_depth_range(hull_or_mesh, K: np.ndarray, T_cam_table: Sequence[np.ndarr
     Ks = _scaled_K(K, scale)
     near = np.zeros((len(Ts), H, W), np.float32)
     far = np.zeros_like(near)
+    corners = np.array(np.meshgrid(*zip(verts.min(0), verts.max(0)))).reshape(3, -1).T
+    v_sub = verts[:: max(1, len(verts) // 20000)]
     for i, T in enumerate(Ts):
-        centre, dirs = pixel_rays_table(Ks, T, (Ws, Hs))
-        # farthest possible depth: bounding-box corners in the camera frame
-        corners = np.array(np.meshgrid(*zip(verts.min(0), verts.max(0)))).reshape(3, -1).T
-        t_far = float((corners @ T[:3, :3].T + T[:3, 3])[:, 2].max()) + 10.0
-        rays = np.concatenate([np.broadcast_to(centre, dirs.shape), dirs], axis=-1).astype(np.float32)
-        t1 = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-        back = np.concatenate([centre + dirs * t_far, -dirs], axis=-1).astype(np.float32)
-        t2 = scene.cast_rays(o3d.core.Tensor(back))["t_hit"].numpy()
-        hit = np.isfinite(t1) & np.isfinite(t2)
-        n_i = np.where(hit, np.maximum(t1 - margin_mm, 1e-3), 0.0).astype(np.float32)
-        f_i = np.where(hit, t_far - t2 + margin_mm, 0.0).astype(np.float32)
+        n_i = np.zeros((Hs, Ws), np.float32)
+        f_i = np.zeros((Hs, Ws), np.float32)
+        win = _projected_window(Ks, T, v_sub, (Ws, Hs))
+        if win is not None:
+            ys, xs = win
+            u, v = np.meshgrid(np.arange(xs.start, xs.stop, dtype=np.float64),
+                               np.arange(ys.start, ys.stop, dtype=np.float64))
+            dirs = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(Ks).T @ T[:3, :3]
+            centre = -T[:3, :3].T @ T[:3, 3]
+            # farthest possible depth: bounding-box corners in the camera frame
+            t_far = float((corners @ T[:3, :3].T + T[:3, 3])[:, 2].max()) + 10.0
+            rays = np.concatenate([np.broadcast_to(centre, dirs.shape), dirs], axis=-1).astype(np.float32)
+            t1 = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+            back = np.concatenate([centre + dirs * t_far, -dirs], axis=-1).astype(np.float32)
+            t2 = scene.cast_rays(o3d.core.Tensor(back))["t_hit"].numpy()
+            hit = np.isfinite(t1) & np.isfinite(t2)
+            n_i[ys, xs] = np.where(hit, np.maximum(t1 - margin_mm, 1e-3), 0.0)
+            f_i[ys, xs] = np.where(hit, t_far - t2 + margin_mm, 0.0)
         near[i] = _resize_nearest(n_i, (W, H)) if scale != 1.0 else n_i
         far[i] = _resize_nearest(f_i, (W, H)) if scale != 1.0 else f_i
     return near, far
+
+
+def _projected_window(K, T, pts_table, size, pad: int = 4) -> tuple[slice, slice] | None:
+    """Pixel window (rows, cols) holding the projection of ``pts_table``, padded; None if empty."""
+    pc = pts_table @ T[:3, :3].T + T[:3, 3]
+    W, H = size
+    if np.any(pc[:, 2] <= 1e-6):  # the mesh straddles the camera plane: whole image
+        return slice(0, H), slice(0, W)
+    uv = pc[:, :2] / pc[:, 2:] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+    x0, y0 = np.floor(uv.min(0)).astype(int) - pad
+    x1, y1 = np.ceil(uv.max(0)).astype(int) + pad + 1
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, W), min(y1, H)
+    if x1 <= x0 or y1 <= y0:
+        return None
+    return slice(y0, y1), slice(x0, x1)
 
 
 # --------------------------------------------------------------------------- neighbours
