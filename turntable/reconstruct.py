@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import shutil
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -107,6 +108,12 @@ def _undistort(images: list[np.ndarray], seq: SequenceCalibration) -> list[np.nd
     W, H = intr.width, intr.height
     m1, m2 = cv2.initUndistortRectifyMap(intr.K, intr.dist, None, intr.K, (W, H), cv2.CV_32FC1)
     return [cv2.remap(im, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) for im in images]
+
+
+def _frame_path(opts: ReconstructOptions, name: str) -> Path:
+    """Where frame ``name`` lives on disk (video frames: the video itself)."""
+    p = Path(opts.input)
+    return p / name if p.is_dir() else p
 
 
 # --------------------------------------------------------------------------- stages
@@ -270,16 +277,23 @@ def _export(out, opts, seq, names, mesh, fused, progress) -> dict[str, Path]:
 
             write_points_ply(out / "points.ply", fused)
             files["points"] = out / "points.ply"
-        frames = [(n, seq_frame.T_cam_table) for n in names for seq_frame in seq.frames if seq_frame.image == n]
-        intr = seq.intrinsics
+        T_by_name = {fp.image: fp.T_cam_table for fp in seq.frames}
+        intr = seq.intrinsics  # the original photos: their distortion, not the undistorted copies'
         if opts.export_colmap:
             from recon.export import export_colmap
 
-            files["colmap"] = export_colmap(intr.K, intr.width, intr.height, frames, out / "colmap", dist=intr.dist)
+            col = [(n, T_by_name[n]) for n in names]
+            files["colmap"] = out / "colmap"
+            export_colmap(intr.K, intr.width, intr.height, col, files["colmap"], dist=intr.dist,
+                          points_table=None if fused is None else fused.pts_table,
+                          colors_rgb=None if fused is None else fused.colors_rgb)
         if opts.export_nerfstudio:
             from recon.export import export_nerfstudio
 
-            files["nerfstudio"] = export_nerfstudio(intr.K, intr.width, intr.height, frames, out, dist=intr.dist)
+            # file paths relative to OUT, pointing at the user's original photos
+            rel = [(os.path.relpath(_frame_path(opts, n), out), T_by_name[n]) for n in names]
+            files["nerfstudio"] = export_nerfstudio(intr.K, intr.width, intr.height, rel, out, dist=intr.dist,
+                                                    ply_file_path="model.ply")
     return files
 
 
