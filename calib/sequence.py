@@ -505,15 +505,16 @@ def _mark_weights(stds_deg: Sequence[float], noise_px: float) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- angle marks
-def marks_angle_reader(images: Sequence[np.ndarray | None], spec: TargetSpec) -> AngleReader:
-    """The default :data:`AngleReader`: ``calib.marks`` on ``images[k]``."""
+def marks_angle_reader(images: Sequence[np.ndarray | None], spec: TargetSpec,
+                       dist: np.ndarray | None = None) -> AngleReader:
+    """The default :data:`AngleReader`: ``calib.marks`` on ``images[k]`` (raw, distorted by ``dist``)."""
     from .marks import align_pose_to_marks, read_turntable_angle
 
     def read(k: int, K: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, float]:
         img = images[k]
         if img is None:
             raise CalibrationError("no image to read the angle marks from")
-        a = read_turntable_angle(img, K, T, spec)
+        a = read_turntable_angle(img, K, T, spec, dist=dist)
         return align_pose_to_marks(T, a.angle_deg), float(a.std_deg)
 
     return read
@@ -725,7 +726,7 @@ def calibrate_sequence(
     if max_points_per_edge is None:
         max_points_per_edge = int(np.clip(POINT_BUDGET / (4 * n), 100, 1000))
     if angle_reader is None and images is not None:
-        angle_reader = marks_angle_reader(images, spec)
+        angle_reader = marks_angle_reader(images, spec, intrinsics.dist if intrinsics is not None else None)
     pp = tuple(intrinsics.principal_point_px) if intrinsics is not None else principal_point_px
     singles, reasons = _per_frame(observations, spec, intrinsics, pp, angle_reader, failures,
                                   max_points_per_edge, progress)

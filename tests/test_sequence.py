@@ -234,3 +234,45 @@ def test_given_intrinsics_are_kept_and_undistort_the_edges(monkeypatch):
     assert np.array_equal(seq.intrinsics.K, K) and np.array_equal(seq.intrinsics.dist, dist)
     assert seq.meta["intrinsics_source"] == "given"
     assert seq.meta["rms_px"] < 0.2  # the distortion was removed: the model fits to the noise level
+
+
+# --------------------------------------------------------------------------- CLI
+def _cli(argv):
+    from turntable.cli import main
+
+    return main(["calibrate-sequence", *argv])
+
+
+def test_cli_empty_folder(tmp_path, capsys):
+    (tmp_path / "imgs").mkdir()
+    rc = _cli([str(tmp_path / "imgs"), "--r-outer", "80", "--r-inner", "50", "--out", str(tmp_path / "c.json")])
+    assert rc == 2
+    assert "no images found" in capsys.readouterr().err
+    assert not (tmp_path / "c.json").exists()
+
+
+def test_cli_no_rings_anywhere(tmp_path, capsys):
+    import cv2
+
+    d = tmp_path / "imgs"
+    d.mkdir()
+    rng = np.random.default_rng(7)
+    for k in range(2):
+        cv2.imwrite(str(d / f"frame_{k}.png"), rng.integers(0, 255, (120, 160, 3), dtype=np.uint8))
+    (d / "frame_2.png").write_bytes(b"not a png")
+    rc = _cli([str(d), "--r-outer", "80", "--r-inner", "50", "--out", str(tmp_path / "c.json")])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "no frame could be calibrated" in err and "cannot decode image" in err
+    assert not (tmp_path / "c.json").exists()
+
+
+def test_cli_bad_intrinsics_file(tmp_path, capsys):
+    import cv2
+
+    d = tmp_path / "imgs"
+    d.mkdir()
+    cv2.imwrite(str(d / "a.png"), np.zeros((10, 10, 3), np.uint8))
+    rc = _cli([str(d), "--r-outer", "80", "--r-inner", "50", "--intrinsics", str(tmp_path / "nope.yml"),
+               "--out", str(tmp_path / "c.json")])
+    assert rc == 2 and "nope.yml: file not found" in capsys.readouterr().err

@@ -1,0 +1,146 @@
+"""``turntable calibrate-sequence``: one camera and one pose per frame -> cameras.json.
+
+Detects the rings in every image of a folder, calibrates them jointly
+(:func:`calib.sequence.calibrate_sequence`: a fixed camera and a turning table,
+or a hand-held camera), prints a summary table and writes ``cameras.json``
+atomically. Frames that cannot be used are listed with their reason; the exit
+code is 0 when every frame calibrated, 1 when some were skipped.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from pathlib import Path
+
+from calib.target import TargetSpec
+from calib.types import SequenceCalibration
+
+from .cameras_io import write_cameras
+from .cmd_calibrate import add_target_arguments, target_from_args
+from .errors import UserError
+from .images import list_images, read_image
+
+__all__ = ["add_arguments", "run", "calibrate_folder", "summary_table"]
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("folder", metavar="DIR", help="folder of photos in turntable order")
+    add_target_arguments(parser)
+    parser.add_argument("--step-deg", type=float, metavar="D",
+                        help="motorised table: frame k is at k*D degrees (the marks are checked against it)")
+    parser.add_argument("--intrinsics", metavar="FILE",
+                        help="known camera (OpenCV YAML/XML or JSON: camera_matrix, distortion_coefficients, "
+                             "image_width, image_height); K is kept, the edges are undistorted with it")
+    parser.add_argument("--principal-point", type=float, nargs=2, metavar=("U", "V"),
+                        help="known principal point, pixels (default: estimated where the views allow, "
+                             "else the image centre)")
+    parser.add_argument("--mode", choices=("auto", "turntable", "handheld"), default="auto",
+                        help="fixed camera and turning table, or a moving camera (default: decided from the data)")
+    parser.add_argument("--no-distortion", action="store_true", help="do not estimate radial distortion")
+    parser.add_argument("--out", required=True, metavar="cameras.json", help="output file")
+
+
+def _progress_printer(stream, label: str):
+    t0 = time.perf_counter()
+    last = [0.0]
+
+    def tick(done: int, total: int) -> None:
+        now = time.perf_counter()
+        if now - last[0] < 0.5 and done < total:
+            return
+        last[0] = now
+        stream.write(f"\r{label}: {done}/{total} ({now - t0:.1f} s)")
+        if done >= total:
+            stream.write("\n")
+        stream.flush()
+
+    return tick
+
+
+def calibrate_folder(paths, spec: TargetSpec, *, step_deg=None, intrinsics=None, mode="auto",
+                     principal_point_px=None, distortion="auto", progress=None) -> SequenceCalibration:
+    """Read ``paths`` (unreadable ones are reported as skipped frames) and calibrate them.
+
+    ``UserError`` when nothing can be calibrated; see
+    :func:`turntable.sequence_stage.calibrate_frames` for the rest.
+    """
+    from .sequence_stage import calibrate_frames
+
+    frames = []
+    for p in paths:
+        p = Path(p)
+        try:
+            frames.append((p.name, read_image(p), ""))
+        except UserError as exc:
+            frames.append((p.name, None, str(exc).split(": ", 1)[-1]))
+    return calibrate_frames(frames, spec, step_deg=step_deg, intrinsics=intrinsics, mode=mode,
+                            principal_point_px=principal_point_px, distortion=distortion, progress=progress)
+
+
+def _fmt(x, spec: str, none: str = "-") -> str:
+    return none if x is None or (isinstance(x, float) and not math.isfinite(x)) else format(x, spec)
+
+
+def summary_table(seq: SequenceCalibration) -> str:
+    """Human summary: per-frame lines, then the shared camera with 1-sigma."""
+    m = seq.meta
+    lines = [f"{'image':<28} {'angle°':>8} {'rms px':>7}  status", "-" * 60]
+    for f in seq.frames:
+        lines.append(f"{Path(f.image).name[:28]:<28} {_fmt(f.angle_deg, '8.2f'):>8} "
+                     f"{_fmt(f.rms_px, '7.3f'):>7}  {f.status}")
+    K = seq.intrinsics.K
+    pp_std = m.get("principal_point_std_px") or [None, None]
+    lines += ["",
+              f"mode            {seq.mode} ({m.get('mode_reason', '')})",
+              f"frames          {m.get('frames_used', '?')} used, {m.get('frames_skipped', '?')} skipped",
+              f"focal length    {K[0, 0]:.2f} px ± {_fmt(m.get('focal_std_px'), '.2f', 'fixed')}",
+              f"principal point ({K[0, 2]:.2f}, {K[1, 2]:.2f}) px ± "
+              f"({_fmt(pp_std[0], '.2f', 'fixed')}, {_fmt(pp_std[1], '.2f', 'fixed')})"]
+    dist = seq.intrinsics.dist
+    if dist.size:
+        ds = m.get("dist_std", {})
+        lines.append("distortion      " + ", ".join(
+            f"{n} {dist[i]:+.4f} ± {_fmt(ds.get(n), '.4f', 'fixed')}" for i, n in enumerate(("k1", "k2"))
+            if i < dist.size))
+    if m.get("stroke_mm") is not None:
+        lines.append(f"stroke width    {m['stroke_mm']:.3f} mm ± {_fmt(m.get('stroke_std_mm'), '.3f')}")
+    lines.append(f"RMS             {_fmt(m.get('rms_px'), '.3f')} px (single views {_fmt(m.get('single_view_rms_px'), '.3f')} px)")
+    tt = m.get("turntable")
+    if tt:
+        off = tt["pattern_offset_from_axis_mm"]
+        lines.append(f"turntable       camera {tt['camera_radius_mm']:.1f} mm from the axis, "
+                     f"{tt['camera_height_mm']:.1f} mm above the table; pattern off the axis by "
+                     f"({off[0]:.2f}, {off[1]:.2f}) mm")
+    for name, why in m.get("not_estimated", {}).items():
+        lines.append(f"note            {name}: {why}")
+    for c in m.get("angle_checks", []):
+        lines.append(f"warning         {c['image']}: marks and --step-deg disagree by {c['marks_minus_step_deg']:+.2f}°")
+    return "\n".join(lines)
+
+
+def run(args) -> int:
+    spec = target_from_args(args)
+    paths = list_images(args.folder)
+    out = Path(args.out)
+    if out.is_dir():
+        raise UserError(f"--out {out}: is a folder; give a file name such as {out / 'cameras.json'}")
+    intr = None
+    if args.intrinsics:
+        from .intrinsics_io import read_opencv_intrinsics
+
+        intr = read_opencv_intrinsics(args.intrinsics)
+    if args.step_deg is not None and not (math.isfinite(args.step_deg) and args.step_deg != 0):
+        raise UserError(f"--step-deg must be a non-zero number, got {args.step_deg}")
+    pp = tuple(args.principal_point) if args.principal_point else None
+    seq = calibrate_folder(paths, spec, step_deg=args.step_deg, intrinsics=intr, mode=args.mode,
+                           principal_point_px=pp, distortion="none" if args.no_distortion else "auto",
+                           progress=_progress_printer(sys.stderr, "calibrate-sequence"))
+    for f in seq.frames:
+        if not f.ok:
+            print(f"turntable calibrate-sequence: {Path(args.folder) / f.image}: {f.status}", file=sys.stderr)
+    write_cameras(out, seq)
+    print(summary_table(seq))
+    print(f"wrote {out}")
+    return 0 if all(f.ok for f in seq.frames) else 1
