@@ -43,6 +43,9 @@ class Arcs:
     quadrant : (A,) int
         Gradient quadrant of the arc in angular order: 0 for ``(g_u, g_v)``
         signs ``(+, +)``, 1 ``(-, +)``, 2 ``(-, -)``, 3 ``(+, -)``.
+    partnered : (A,) bool
+        An edge of opposite gradient runs alongside (within ``partner_px``): the
+        arc is likely one side of a thin stroke (or band), not a lone outline.
     norm : (3,) float64
         ``(u0, v0, scale)`` of the normalisation.
     """
@@ -52,6 +55,7 @@ class Arcs:
     samples_px: np.ndarray
     ends_px: np.ndarray
     quadrant: np.ndarray
+    partnered: np.ndarray
     norm: np.ndarray
 
 
@@ -69,7 +73,7 @@ class ArcEllipse:
 
 
 def extract_arcs(grey: np.ndarray, *, min_length: int = 12, samples: int = 6,
-                 low_frac: float = 0.15, high_frac: float = 0.35) -> Arcs:
+                 low_frac: float = 0.15, high_frac: float = 0.35, partner_px: float = 10.0) -> Arcs:
     """Arcs of the Canny edges of ``grey`` (H, W) uint8.
 
     Canny thresholds are ``low_frac`` / ``high_frac`` of the image's grey range
@@ -90,8 +94,11 @@ def extract_arcs(grey: np.ndarray, *, min_length: int = 12, samples: int = 6,
     labels = np.zeros((h, w), np.int32)
     n_total = 0
     quads = []
+    near = []  # pixels within partner_px (Chebyshev) of an edge pixel of each quadrant
+    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * int(partner_px) + 1, 2 * int(partner_px) + 1))
     for q in range(4):
         m = ((edges > 0) & (quad == q)).astype(np.uint8)
+        near.append(cv2.dilate(m, kernel))
         n, lab = cv2.connectedComponents(m, connectivity=8, ltype=cv2.CV_32S)
         sel = lab > 0
         labels[sel] = lab[sel] + n_total
@@ -118,8 +125,12 @@ def extract_arcs(grey: np.ndarray, *, min_length: int = 12, samples: int = 6,
     samples_px = pts[pick] if n_arcs else np.zeros((0, samples, 2))
     ends_px = _ends(pts, lab[order], length, starts)
     quadrant = np.concatenate(quads)[keep]
+    si = np.clip(np.round(samples_px).astype(np.int64), 0, [w - 1, h - 1]).reshape(-1, 2)
+    # is there an edge pixel of opposite gradient near each arc sample?
+    opp = np.stack([near[(q + 2) % 4][si[:, 1], si[:, 0]] for q in range(4)]).reshape(4, n_arcs, -1)
+    partnered = np.mean(opp[quadrant, np.arange(n_arcs)] > 0, axis=1) >= 0.5
     return Arcs(length=length, scatter=scatter, samples_px=samples_px, ends_px=ends_px, quadrant=quadrant,
-                norm=norm)
+                partnered=partnered, norm=norm)
 
 
 def _ends(pts: np.ndarray, lab: np.ndarray, length: np.ndarray, starts: np.ndarray) -> np.ndarray:
@@ -225,14 +236,15 @@ def sampson_batch(C: np.ndarray, uv_px: np.ndarray) -> np.ndarray:
 def find_ellipses(arcs: Arcs, image_size: tuple[int, int], *, tol_px: float = 1.5,
                   n_seeds: int = 12, n_eval: int = 80, max_ellipses: int = 12,
                   min_coverage: float = 0.2, min_axis_px: float = 4.0,
-                  min_aspect: float = 0.08, gap_px: float = 5.0) -> list[ArcEllipse]:
+                  min_aspect: float = 0.08, gap_px: float = 5.0, lone_weight: float = 0.3) -> list[ArcEllipse]:
     """Ellipses made of several arcs, best supported first (RANSAC over arcs).
 
     Hypotheses are the fits of each of the ``n_eval`` longest curved arcs, of
     each pair of the ``n_seeds`` longest, and of chains of two or three arcs
     whose ends are within ``gap_px`` (an ellipse edge breaks into arcs at its
     axis-aligned tangents); the ``n_eval`` arcs vote. An arc supports a conic when
-    80 % of its samples lie within ``tol_px`` (Sampson). An ellipse is kept when
+    80 % of its samples lie within ``tol_px`` (Sampson); arcs without a partner
+    (see :class:`Arcs`) count ``lone_weight`` of their length. An ellipse is kept when
     at least two arcs covering ``min_coverage`` of its perimeter support it.
     """
     w, h = image_size
@@ -246,7 +258,7 @@ def find_ellipses(arcs: Arcs, image_size: tuple[int, int], *, tol_px: float = 1.
     ev = order[:n_eval]
     seeds = order[:n_seeds]
     i, j = np.triu_indices(len(seeds), k=1)
-    ai, aj, ti, tj, tk = _adjacent(arcs.ends_px[ev], arcs.quadrant[ev], gap_px)
+    ai, aj, ti, tk, tj = _adjacent(arcs.ends_px[ev], arcs.quadrant[ev], gap_px)
     sc = arcs.scatter[ev]
     S = np.concatenate([arcs.scatter[seeds], arcs.scatter[seeds[i]] + arcs.scatter[seeds[j]], sc[ai] + sc[aj],
                         sc[ti] + sc[tj] + sc[tk]])
@@ -256,7 +268,7 @@ def find_ellipses(arcs: Arcs, image_size: tuple[int, int], *, tol_px: float = 1.
     if len(C) == 0:
         return []
     support = _support(C, arcs, ev, tol_px)  # (H, E) bool
-    lengths = arcs.length[ev].astype(np.float64)
+    lengths = arcs.length[ev] * np.where(arcs.partnered[ev], 1.0, lone_weight)
     avail = np.ones(len(ev), bool)
     found: list[ArcEllipse] = []
     for _ in range(4 * max_ellipses):
@@ -267,7 +279,7 @@ def find_ellipses(arcs: Arcs, image_size: tuple[int, int], *, tol_px: float = 1.
             break
         members = support[best] & avail
         conic = C[best]
-        for _ in range(2):  # refit on the supporting arcs, collect again
+        for _ in range(1):  # refit on the supporting arcs, collect again
             Qr, okr = fit_scatter(arcs.scatter[ev[members]].sum(axis=0)[None])
             if not okr[0]:
                 break
@@ -291,7 +303,9 @@ def find_ellipses(arcs: Arcs, image_size: tuple[int, int], *, tol_px: float = 1.
 
 
 def _adjacent(ends: np.ndarray, quadrant: np.ndarray, gap_px: float):
-    """Index pairs (i, j) and triples (i, j, k) of arcs chained end to end within ``gap_px``.
+    """Index pairs (i, j) and triples (i, k, j) (k in the middle) of arcs chained end to end.
+
+    Arcs are chained when an end of one lies within ``gap_px`` of an end of the other.
 
     Chained arcs of one ellipse edge have gradients in neighbouring quadrants.
     """
@@ -301,17 +315,10 @@ def _adjacent(ends: np.ndarray, quadrant: np.ndarray, gap_px: float):
     dq = (quadrant[:, None] - quadrant[None, :]) % 4
     adj = (d < gap_px) & ((dq == 1) | (dq == 3))
     ai, aj = np.nonzero(np.triu(adj, 1))
-    # triples: j in the middle, two distinct neighbours i < k
-    tj, ti, tk = [], [], []
-    for m in range(n):
-        nb = np.flatnonzero(adj[m])
-        if len(nb) >= 2:
-            p, q = np.triu_indices(len(nb), 1)
-            tj.append(np.full(len(p), m))
-            ti.append(nb[p])
-            tk.append(nb[q])
-    cat = (lambda v: np.concatenate(v) if v else np.zeros(0, np.int64))  # noqa: E731
-    return ai, aj, cat(ti), cat(tj), cat(tk)
+    # triples: k in the middle, two distinct neighbours i < j
+    t = adj[:, :, None] & adj[None, :, :] & np.triu(np.ones((n, n), bool), 1)[:, None, :]
+    ti, tk, tj = np.nonzero(t)
+    return ai, aj, ti, tk, tj
 
 
 def _curvature(S: np.ndarray) -> np.ndarray:

@@ -57,7 +57,7 @@ def conic_samples(C: np.ndarray, spacing_px: float, max_samples: int = 4000) -> 
     Returns ``uv_px`` (M, 2) and ``normals`` (M, 2), in order around the ellipse.
     """
     e = conic_to_ellipse(C)
-    n_dense = 2048
+    n_dense = 720
     t = np.linspace(0.0, 2.0 * np.pi, n_dense, endpoint=False)
     ca, sa = np.cos(e.angle_rad), np.sin(e.angle_rad)
     x, y = e.a * np.cos(t), e.b * np.sin(t)
