@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calib.camera import circle_conic, invert_T, make_T
+from calib.camera import circle_conic
 from calib.conics import conic_to_ellipse, ellipse_points, sampson_distance
 from calib.target import TargetSpec
 from turntable.cameras_io import read_cameras

@@ -43,6 +43,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vignette", type=float, default=0.15,
                    help="fraction of light lost in the image corners (default 0.15)")
     p.add_argument("--jpeg", type=int, default=95, help="JPEG quality 1-100, 0 writes PNG (default 95)")
+    p.add_argument("--png", action="store_true", help="write lossless PNG images (same as --jpeg 0)")
     p.add_argument("--backdrop", default="dark", choices=["dark", "light", "colour", "clutter"],
                    help="wall behind the turntable (default dark)")
     p.add_argument("--handheld", action="store_true",
@@ -69,7 +70,7 @@ def options_from_args(args: argparse.Namespace):
             object=args.object, frames=args.frames, step_deg=args.step_deg, jitter_deg=args.jitter_deg,
             width=w, height=h, focal_px=args.focal_px, elevation_deg=args.elevation_deg,
             distance_mm=args.distance_mm, noise=args.noise, blur_px=args.blur, vignette=args.vignette,
-            jpeg=args.jpeg,
+            jpeg=0 if args.png else args.jpeg,
             backdrop=args.backdrop, handheld=args.handheld, k1=args.k1, k2=args.k2,
             principal_point=None if args.principal_point is None else tuple(args.principal_point),
             r_outer=args.r_outer, r_inner=args.r_inner, stroke=args.stroke, seed=args.seed,

@@ -46,7 +46,8 @@ from calib.types import FramePose, Intrinsics, SequenceCalibration
 from turntable.cameras_io import write_cameras
 
 from .objects import OBJECT_NAMES, load_object, make_object
-from .render import BACKDROPS, build_scene, render_view
+from .render import render_view
+from .scene import _DISC_THICKNESS_MM, BACKDROPS, build_scene
 
 __all__ = ["SynthOptions", "make_sequence", "camera_poses", "look_at", "rot_y"]
 
@@ -299,7 +300,7 @@ def make_sequence(out_dir: str | os.PathLike, options: SynthOptions, overwrite: 
             "angles_deg": [float(a) for a in angles],
             "paper_radius_mm": scene.paper_radius_mm,
             "disc_radius_mm": scene.disc_radius_mm,
-            "disc_thickness_mm": 15.0,
+            "disc_thickness_mm": _DISC_THICKNESS_MM,
             "backdrop_distance_mm": backdrop_mm,
             "target_px_per_mm": ppm,
             "light_dir_world": scene.light_dir_world.tolist(),
