@@ -26,7 +26,6 @@ from __future__ import annotations
 import json
 import os
 import struct
-import tempfile
 from pathlib import Path
 from typing import Sequence
 
@@ -34,6 +33,7 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from .fileio import atomic_write_bytes
 from .types import TableMesh
 
 __all__ = ["export_mesh", "export_colmap", "export_nerfstudio", "glb_bytes", "srgb_to_linear"]
@@ -71,12 +71,12 @@ def export_mesh(mesh: TableMesh, out_dir: str | os.PathLike, *, stem: str = "mod
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {ext: out / f"{stem}.{ext}" for ext in ("glb", "ply", "obj")}
-    _atomic_write(paths["glb"], glb_bytes(V / MM_PER_M, F, N, C))
+    atomic_write_bytes(paths["glb"], glb_bytes(V / MM_PER_M, F, N, C))
     tm = _trimesh_m(V, F, N, C)
-    _atomic_write(paths["ply"], trimesh.exchange.ply.export_ply(tm, encoding="binary", vertex_normal=True))
+    atomic_write_bytes(paths["ply"], trimesh.exchange.ply.export_ply(tm, encoding="binary", vertex_normal=True))
     obj = trimesh.exchange.obj.export_obj(tm, include_normals=True, include_color=C is not None,
                                           include_texture=False, header=None)
-    _atomic_write(paths["obj"], obj.encode())
+    atomic_write_bytes(paths["obj"], obj.encode())
     return paths
 
 
@@ -168,18 +168,6 @@ def glb_bytes(vertices_m: np.ndarray, faces: np.ndarray, normals: np.ndarray,
     return b"".join([struct.pack("<4sII", b"glTF", 2, total),
                      struct.pack("<I4s", len(js), b"JSON"), js,
                      struct.pack("<I4s", len(binary), b"BIN\0"), binary])
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` whole or not at all (temp file in the same folder + rename)."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 # --- cameras ---------------------------------------------------------------------------------------
@@ -282,9 +270,9 @@ def export_colmap(
         imgs.append("")
     pts = _colmap_points(points_table, colors_rgb)
     paths = {"cameras": out / "cameras.txt", "images": out / "images.txt", "points3D": out / "points3D.txt"}
-    _atomic_write(paths["cameras"], ("\n".join(cams) + "\n").encode())
-    _atomic_write(paths["images"], ("\n".join(imgs) + "\n").encode())
-    _atomic_write(paths["points3D"], ("\n".join(pts) + "\n").encode())
+    atomic_write_bytes(paths["cameras"], ("\n".join(cams) + "\n").encode())
+    atomic_write_bytes(paths["images"], ("\n".join(imgs) + "\n").encode())
+    atomic_write_bytes(paths["points3D"], ("\n".join(pts) + "\n").encode())
     return paths
 
 
@@ -353,5 +341,5 @@ def export_nerfstudio(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     path = out / "transforms.json"
-    _atomic_write(path, (json.dumps(doc, indent=2) + "\n").encode())
+    atomic_write_bytes(path, (json.dumps(doc, indent=2) + "\n").encode())
     return path

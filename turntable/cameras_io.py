@@ -18,12 +18,12 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from calib.types import FramePose, Intrinsics, SequenceCalibration
+from recon.fileio import atomic_write_bytes
 
 from .errors import UserError
 
@@ -92,16 +92,7 @@ def cameras_from_dict(d: dict, source: str = "cameras.json") -> SequenceCalibrat
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     """Write ``text`` to ``path`` whole or not at all (temp file + rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_bytes(path, text.encode())
 
 
 def write_cameras(path: str | os.PathLike, seq: SequenceCalibration) -> None:

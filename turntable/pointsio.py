@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from recon.fileio import atomic_path
 from recon.types import FusedPoints
 
 __all__ = ["write_points_ply"]
@@ -22,13 +21,7 @@ def write_points_ply(path: str | Path, points: FusedPoints, *, metres: bool = Fa
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points.pts_table, float) * s))
     pc.normals = o3d.utility.Vector3dVector(np.asarray(points.normals_table, float))
     pc.colors = o3d.utility.Vector3dVector(np.asarray(points.colors_rgb, float) / 255.0)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".ply")
-    os.close(fd)
-    try:
-        if not o3d.io.write_point_cloud(tmp, pc, write_ascii=False):
+    with atomic_path(path, suffix=".ply") as tmp:
+        if not o3d.io.write_point_cloud(str(tmp), pc, write_ascii=False):
             raise OSError(f"{path}: open3d could not write the point cloud")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path

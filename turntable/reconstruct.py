@@ -122,10 +122,13 @@ def _stage_cameras(frames: list[Frame], opts: ReconstructOptions, progress: Prog
     cam_path = out / "cameras.json"
     if opts.cameras is not None:
         seq = read_cameras(opts.cameras)
-        names = {f.image for f in seq.frames}
+        # cameras.json may name frames with a folder ("images/frame_000.jpg"): match by file name
+        seq = replace(seq, frames=tuple(replace(fp, image=Path(fp.image).name) for fp in seq.frames))
+        names = {fp.image for fp in seq.frames}
         missing = [f.name for f in frames if f.bgr is not None and f.name not in names]
         if missing:
             raise UserError(f"--cameras {opts.cameras}: no camera for frame(s) {', '.join(missing[:5])}")
+        write_cameras(cam_path, seq)
         return seq
     if cam_path.is_file() and not opts.overwrite:
         try:

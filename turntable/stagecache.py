@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from recon.fileio import atomic_path
 
 __all__ = ["StageCache", "stage_key"]
 
@@ -49,11 +49,5 @@ class StageCache:
 
     def save(self, name: str, key: str, **arrays) -> None:
         self.dir.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=self.dir, prefix=f".{name}.", suffix=".npz")
-        os.close(fd)
-        try:
+        with atomic_path(self.dir / f"{name}.npz", suffix=".npz") as tmp:
             np.savez_compressed(tmp, _key=np.array(key), **arrays)
-            os.replace(tmp, self.dir / f"{name}.npz")
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
