@@ -127,7 +127,7 @@ def extract_arcs(grey: np.ndarray, *, min_length: int = 12, samples: int = 6,
     quadrant = np.concatenate(quads)[keep]
     si = np.clip(np.round(samples_px).astype(np.int64), 0, [w - 1, h - 1]).reshape(-1, 2)
     # is there an edge pixel of opposite gradient near each arc sample?
-    opp = np.stack([near[(q + 2) % 4][si[:, 1], si[:, 0]] for q in range(4)]).reshape(4, n_arcs, -1)
+    opp = np.stack([near[(q + 2) % 4][si[:, 1], si[:, 0]] for q in range(4)]).reshape(4, n_arcs, samples)
     partnered = np.mean(opp[quadrant, np.arange(n_arcs)] > 0, axis=1) >= 0.5
     return Arcs(length=length, scatter=scatter, samples_px=samples_px, ends_px=ends_px, quadrant=quadrant,
                 partnered=partnered, norm=norm)

@@ -128,11 +128,6 @@ def _strokes(conics: list[np.ndarray], support: list[float], spec: TargetSpec) -
     return merged
 
 
-def _area(C: np.ndarray) -> float:
-    e = conic_to_ellipse(C)
-    return e.a * e.b
-
-
 def _centre_distance(C1: np.ndarray, C2: np.ndarray) -> float:
     return float(np.linalg.norm(conic_center(C1) - conic_center(C2)))
 
@@ -151,14 +146,15 @@ def _candidate_pairs(rings: list[tuple[np.ndarray, float]], spec: TargetSpec) ->
     r_lo = (spec.r_outer_mm - hw) / (spec.r_inner_mm + hw) * (1 - COARSE_RATIO_TOL)
     r_hi = (spec.r_outer_mm + hw) / (spec.r_inner_mm - hw) * (1 + COARSE_RATIO_TOL)
     good, concentric, strongest = [], None, None
+    ells = [conic_to_ellipse(C) for C, _ in rings]
     for i in range(len(rings)):
         for j in range(i + 1, len(rings)):
             (Ci, si), (Cj, sj) = rings[i], rings[j]
-            big, small = (Ci, Cj) if _area(Ci) >= _area(Cj) else (Cj, Ci)
+            big, small = (Ci, Cj) if ells[i].a * ells[i].b >= ells[j].a * ells[j].b else (Cj, Ci)
             split, ratio, _ = pencil_ratio(big, small)
             score = si + sj
             if strongest is None or score > strongest[0]:
-                strongest = (score, _centre_distance(big, small))
+                strongest = (score, float(np.linalg.norm(ells[i].center_px - ells[j].center_px)))
             if np.sqrt(split) >= COARSE_CONCENTRIC_TOL:
                 continue
             if concentric is None or score > concentric[0]:
