@@ -13,6 +13,10 @@ rotation of the table frame about its +Y axis relative to frame 0, right-handed
 printed target is fixed to the table frame (its 0 deg mark on table +X), so the
 object has fixed table coordinates in every frame.
 
+The key light comes from a random direction (per seed) 40-70 deg above the
+table on the camera's side and stays fixed in the world, so shading and the
+object's shadow on the target move as the table turns.
+
 Hand-held mode: the table stands still (θ_k = 0) and the camera walks around
 it: azimuth ``k * step_deg`` plus jitter, and random elevation, distance, roll
 and aim point per frame.
@@ -188,6 +192,13 @@ def camera_poses(opts: SynthOptions, object_height_mm: float, rng: np.random.Gen
     return np.zeros(n), poses, [np.eye(4)] * n
 
 
+def _light_direction(rng: np.random.Generator) -> np.ndarray:
+    """A key light above the table on the camera's side (world frame; the camera of frame 0 is on +Z)."""
+    az = math.radians(rng.uniform(-75.0, 75.0))
+    el = math.radians(rng.uniform(40.0, 70.0))
+    return np.array([math.sin(az) * math.cos(el), math.sin(el), math.cos(az) * math.cos(el)])
+
+
 def _sensor(rgb: np.ndarray, opts: SynthOptions, K: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Vignetting and optical blur, then Gaussian read noise plus brightness-dependent shot noise."""
     img = rgb.astype(np.float32)
@@ -248,14 +259,15 @@ def make_sequence(out_dir: str | os.PathLike, options: SynthOptions, overwrite: 
     out = Path(out_dir)
     if out.exists() and not overwrite and (not out.is_dir() or any(out.iterdir())):
         raise FileExistsError(f"{out}: exists and is not an empty folder (use --overwrite)")
-    seeds = np.random.SeedSequence(options.seed).spawn(4)
+    seeds = np.random.SeedSequence(options.seed).spawn(5)
     mesh = _load_mesh(options, np.random.default_rng(seeds[0]))
     spec = options.target_spec()
     intr = options.intrinsics()
     ppm = float(np.clip(1.5 * options.focal_px / (options.distance_mm - spec.r_outer_mm), 2.0, 8.0))
     backdrop_mm = None if options.handheld else _BACKDROP_BEHIND_MM + spec.r_outer_mm + 40.0
+    light = _light_direction(np.random.default_rng(seeds[4]))
     scene = build_scene(mesh, spec, options.backdrop, rng=np.random.default_rng(seeds[1]), target_px_per_mm=ppm,
-                        backdrop_distance_mm=backdrop_mm)
+                        backdrop_distance_mm=backdrop_mm, light_dir_world=light)
     height = float(np.asarray(mesh.vertices)[:, 1].max())
     angles, T_cam_tables, T_world_tables = camera_poses(options, height, np.random.default_rng(seeds[2]))
     noise_rngs = [np.random.default_rng(s) for s in seeds[3].spawn(options.frames)]
