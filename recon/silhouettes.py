@@ -1,0 +1,356 @@
+"""Automatic object silhouettes for a turntable sequence with a fixed camera.
+
+What calibration knows replaces a global threshold:
+
+* **Where the object can be.** It stands on the target, inside the vertical
+  cylinder of radius ``spec.extent_mm`` (+ a margin) above the table. The
+  cylinder's image is the convex hull of its projected bottom and top circles;
+  every pixel outside it is background for sure.
+* **Two background plates.** The camera does not move, so the room (backdrop,
+  table top, surroundings) is static in the image: the per-pixel median over
+  frames is a *room plate*. The turntable disc and the printed target turn
+  with the table, so they are static in the table frame: every frame is
+  rectified onto the plane ``Y = 0`` with the plane homography and the median
+  over frames there is a *table plate* (angle marks, paper, disc), warped back
+  into each frame. The object is static in neither: above the plane it moves
+  in the rectified frames by parallax, and it turns in the image. A plate is
+  trusted at a pixel where most frames agree with it.
+* **Per-frame evidence.** A pixel agreeing with a trusted plate (or with a
+  darker copy of it: a shadow) is probably background, one far from every
+  trusted plate is object; pixels no plate explains (the object covers them
+  in most frames) are left to the colour models.
+* **Refinement.** GrabCut (colour GMMs + graph cut) starts from that labelling
+  on the cylinder's bounding box at reduced resolution; the result is brought
+  back to full resolution, where pixels near the outline that a plate explains
+  are decided by the plate. Then the components that touch the base region
+  are kept and small holes filled.
+
+Each frame is then checked for plausibility (empty, touching the image border
+along a long stretch, area jumping against its neighbours, mostly undecided)
+and flagged in ``status``; the caller leaves flagged frames out.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from calib.camera import plane_homography, project_points
+from calib.target import TargetSpec
+
+__all__ = ["SilhouetteResult", "estimate_silhouettes", "cylinder_region", "rectify_to_table"]
+
+_MARGIN_MM = 5.0  # the object may overhang the target's outermost ink by this much
+_PLANE_PX_PER_MM = 2.5  # table-plate resolution
+_MIN_TAU = 6.0  # colour distance (0..255 units) below which a pixel agrees with a plate, at least
+_TRUST = 0.6  # a plate is trusted where this fraction of frames agrees with it
+_WORK_PX = 360_000  # GrabCut runs on at most this many pixels (the region's box, downscaled)
+
+
+@dataclass(frozen=True)
+class SilhouetteResult:
+    """Silhouettes of a sequence.
+
+    Attributes
+    ----------
+    masks : (V, H, W) bool
+        True on the object.
+    quality : (V,) float64
+        In [0, 1]: the fraction of the outline that a background plate
+        confirms, times an area-consistency factor; low values deserve a look.
+    status : tuple of str
+        ``"ok"`` or why the frame's silhouette is implausible.
+    """
+
+    masks: np.ndarray
+    quality: np.ndarray
+    status: tuple[str, ...]
+
+
+def cylinder_region(K: np.ndarray, T_cam_table: np.ndarray, size: tuple[int, int], radius_mm: float,
+                    height_mm: float) -> np.ndarray:
+    """Image (H, W) bool of the cylinder ``r <= radius_mm``, ``0 <= Y <= height_mm`` (table frame).
+
+    The projection of a convex body is the convex hull of its projected
+    extreme points: here the bottom and top circles. Points behind the camera
+    are dropped (the caller keeps the height below the camera).
+    """
+    W, H = size
+    th = np.linspace(0.0, 2.0 * np.pi, 180, endpoint=False)
+    ring = np.column_stack([radius_mm * np.cos(th), np.zeros_like(th), radius_mm * np.sin(th)])
+    pts = np.vstack([ring, ring + [0.0, height_mm, 0.0]])
+    z = pts @ T_cam_table[2, :3] + T_cam_table[2, 3]
+    uv = project_points(K, T_cam_table, pts[z > 1e-3])
+    uv = np.clip(uv, -4.0 * (W + H), 4.0 * (W + H))
+    out = np.zeros((H, W), np.uint8)
+    hull = cv2.convexHull(np.round(uv * 16).astype(np.int32))
+    cv2.fillConvexPoly(out, hull, 1, lineType=cv2.LINE_8, shift=4)
+    return out.astype(bool)
+
+
+def _raster_to_table(size_px: int, px_per_mm: float) -> np.ndarray:
+    """3x3 map from raster pixels (j, i, 1) to table plane (X, Z, 1); centre pixel at the origin."""
+    c = (size_px - 1) / 2.0
+    return np.array([[1.0 / px_per_mm, 0.0, -c / px_per_mm], [0.0, 1.0 / px_per_mm, -c / px_per_mm], [0.0, 0.0, 1.0]])
+
+
+def rectify_to_table(image: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, radius_mm: float,
+                     px_per_mm: float) -> np.ndarray:
+    """The table plane around the origin as a square raster, seen from above.
+
+    Pixel (i, j) of the (N, N[, 3]) result shows the plane point ``X = (j - c)
+    / px_per_mm``, ``Z = (i - c) / px_per_mm`` (``c = (N - 1) / 2``, the
+    layout of :func:`turntable.pattern.render_target_image`), ``N`` covering
+    ``[-radius_mm, radius_mm]``; bilinear, zero outside the image.
+    """
+    n = int(2 * math.ceil(radius_mm * px_per_mm) + 1)
+    M = plane_homography(K, T_cam_table) @ _raster_to_table(n, px_per_mm)
+    return cv2.warpPerspective(image, M, (n, n), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def _check_inputs(images_rgb, K, T_cam_table):
+    imgs = np.asarray(images_rgb)
+    if imgs.ndim != 4 or imgs.shape[-1] != 3 or imgs.shape[0] < 1:
+        raise ValueError(f"images_rgb: expected (V, H, W, 3), got {imgs.shape}")
+    if imgs.dtype != np.uint8:
+        raise ValueError(f"images_rgb: expected uint8, got {imgs.dtype}")
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3):
+        raise ValueError(f"K: expected (3, 3), got {K.shape}")
+    T = np.asarray(T_cam_table, dtype=np.float64)
+    if T.shape != (imgs.shape[0], 4, 4):
+        raise ValueError(f"T_cam_table: expected ({imgs.shape[0]}, 4, 4), got {T.shape}")
+    return imgs, K, T
+
+
+def _colour_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Largest per-channel difference (..., ) float32 between RGB arrays (..., 3), 0..255 units."""
+    return np.abs(a.astype(np.int16) - b.astype(np.int16)).max(axis=-1).astype(np.float32)
+
+
+def _shadow_dist(img: np.ndarray, plate: np.ndarray) -> np.ndarray:
+    """Distance (..., ) from ``img`` to the darkened plate ``g * plate`` (0.25 <= g <= 0.95) that fits it best."""
+    i = img.astype(np.float32)
+    p = plate.astype(np.float32)
+    g = np.clip((i * p).sum(-1) / np.maximum((p * p).sum(-1), 1.0), 0.25, 0.95)
+    return np.abs(i - g[..., None] * p).max(axis=-1)
+
+
+def _median_frames(stack: np.ndarray) -> np.ndarray:
+    """Per-pixel median (lower middle) over axis 0 of a uint8 stack."""
+    k = (len(stack) - 1) // 2
+    return np.partition(stack, k, axis=0)[k]
+
+
+def _below_horizon(K, T, box, size_hw) -> np.ndarray:
+    """(h, w) bool: pixels of the box whose rays meet the table plane in front of the camera."""
+    y0, x0 = box
+    h, w = size_hw
+    a = (T[:3, :3].T @ np.linalg.inv(K))[1]  # table-Y component of the ray through (u, v, 1)
+    u = np.arange(x0, x0 + w, dtype=np.float64)
+    v = np.arange(y0, y0 + h, dtype=np.float64)
+    dy = a[0] * u[None, :] + a[1] * v[:, None] + a[2]
+    cam_above = (-T[:3, :3].T @ T[:3, 3])[1] > 0
+    return dy < 0 if cam_above else dy > 0
+
+
+class _Plates:
+    """Room plate (image) and table plate (rectified plane), with where they are trusted."""
+
+    def __init__(self, crops, images, K, T, box, radius_mm, tau):
+        self.room = _median_frames(crops)
+        agree = np.mean([_colour_dist(c, self.room) < tau for c in crops], axis=0)
+        self.room_trust = agree >= _TRUST
+        self.plane_radius = radius_mm + 40.0
+        rect = np.stack([rectify_to_table(im, K, t, self.plane_radius, _PLANE_PX_PER_MM) for im, t in zip(images, T)])
+        ones = np.ones(images.shape[1:3], np.uint8)
+        seen = np.mean([rectify_to_table(ones, K, t, self.plane_radius, _PLANE_PX_PER_MM) > 0 for t in T], axis=0)
+        self.table = _median_frames(rect)
+        agree = np.mean([_colour_dist(r, self.table) < tau for r in rect], axis=0)
+        self.table_trust = ((agree >= _TRUST) & (seen == 1.0)).astype(np.uint8)
+        self.K, self.box = K, box
+
+    def table_in_frame(self, T: np.ndarray, size_hw) -> tuple[np.ndarray, np.ndarray]:
+        """Table plate (h, w, 3) and its trust (h, w) bool, warped into the box of frame ``T``."""
+        h, w = size_hw
+        y0, x0 = self.box
+        n = self.table.shape[0]
+        M = np.array([[1.0, 0, -x0], [0, 1.0, -y0], [0, 0, 1.0]]) @ plane_homography(self.K, T) \
+            @ _raster_to_table(n, _PLANE_PX_PER_MM)
+        plate = cv2.warpPerspective(self.table, M, (w, h), flags=cv2.INTER_LINEAR, borderValue=0)
+        trust = cv2.warpPerspective(self.table_trust, M, (w, h), flags=cv2.INTER_NEAREST, borderValue=0) > 0
+        return plate, trust & _below_horizon(self.K, T, self.box, size_hw)
+
+
+def _initial_labels(img, region, room, room_trust, table, table_trust, tau):
+    """GrabCut labels (h, w) uint8 from the plates, the pixels a plate explains as background, and
+    those a trusted plate contradicts."""
+    d_room_raw = _colour_dist(img, room)
+    d_tab_raw = _colour_dist(img, table)
+    d = np.minimum(np.where(room_trust, d_room_raw, np.inf), np.where(table_trust, d_tab_raw, np.inf))
+    s_room = np.where(room_trust, _shadow_dist(img, room), np.inf)
+    s_tab = np.where(table_trust, _shadow_dist(img, table), np.inf)
+    shadow = np.minimum(s_room, s_tab) < tau
+    explained = d < tau
+    trusted = room_trust | table_trust
+    k3 = np.ones((3, 3), np.uint8)
+    labels = np.full(img.shape[:2], cv2.GC_PR_FGD, np.uint8)
+    labels[explained | shadow] = cv2.GC_PR_BGD
+    labels[cv2.erode(explained.astype(np.uint8), k3) > 0] = cv2.GC_BGD  # a plate explains the whole neighbourhood
+    labels[trusted & (d > 3.0 * tau) & ~shadow] = cv2.GC_FGD
+    labels[~region] = cv2.GC_BGD
+    return labels, explained | (shadow & ~explained), trusted & (d > tau) & ~shadow
+
+
+def _grabcut(img, labels, iterations: int = 2) -> np.ndarray:
+    """Foreground probability-like map (h, w) float32 in {0, 1} from GrabCut at reduced resolution."""
+    h, w = labels.shape
+    fg = (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)
+    if not fg.any() or fg.all():
+        return fg.astype(np.float32)
+    s = min(1.0, math.sqrt(_WORK_PX / (h * w)))
+    if s < 1.0:
+        size = (max(int(round(w * s)), 8), max(int(round(h * s)), 8))
+        small = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+        lab = cv2.resize(labels, size, interpolation=cv2.INTER_NEAREST)
+    else:
+        small, lab = img, labels.copy()
+    bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
+    try:
+        cv2.grabCut(np.ascontiguousarray(small[..., ::-1]), lab, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
+    except cv2.error:  # a class without samples at this scale
+        return fg.astype(np.float32)
+    out = ((lab == cv2.GC_FGD) | (lab == cv2.GC_PR_FGD)).astype(np.float32)
+    if s < 1.0:
+        out = cv2.resize(out, (w, h), interpolation=cv2.INTER_LINEAR)
+    return out
+
+
+def _refine_outline(prob, explained, disagrees, band_px: int) -> np.ndarray:
+    """Full-resolution mask: GrabCut's upsampled answer, the plates' near its outline."""
+    mask = prob >= 0.5
+    k = np.ones((2 * band_px + 1, 2 * band_px + 1), np.uint8)
+    m8 = mask.astype(np.uint8)
+    band = (cv2.dilate(m8, k) > 0) & (cv2.erode(m8, k) == 0)
+    mask[band & explained] = False
+    mask[band & disagrees] = True
+    return mask
+
+
+def _clean(mask: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """Keep the components touching the base region (else the largest) and fill small holes."""
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return mask
+    touching = np.unique(lab[base & mask])
+    touching = touching[touching > 0]
+    keep = touching if len(touching) else [1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))]
+    big = max(stats[k, cv2.CC_STAT_AREA] for k in keep)
+    keep = [k for k in keep if stats[k, cv2.CC_STAT_AREA] >= 0.01 * big]
+    out = np.isin(lab, keep)
+    holes = ~out
+    nh, hl, hs, _ = cv2.connectedComponentsWithStats(holes.astype(np.uint8), connectivity=4)
+    small = np.flatnonzero(hs[:, cv2.CC_STAT_AREA] < max(16, 0.002 * out.sum())) if nh > 1 else []
+    for h in small:
+        x, y, w, hh = hs[h, :4]
+        if x > 0 and y > 0 and x + w < out.shape[1] and y + hh < out.shape[0]:  # not the outside
+            out[hl == h] = True
+    return out
+
+
+def _frame_mask(img, region, base, plates: _Plates, T, tau) -> tuple[np.ndarray, float]:
+    """Mask (h, w) bool of one frame inside the box, and the fraction of its outline a plate confirms."""
+    h, w = img.shape[:2]
+    table, table_trust = plates.table_in_frame(T, (h, w))
+    labels, explained, disagrees = _initial_labels(img, region, plates.room, plates.room_trust, table,
+                                                   table_trust, tau)
+    prob = _grabcut(img, labels)
+    scale = math.sqrt(h * w / _WORK_PX)
+    mask = _refine_outline(prob, explained, disagrees, band_px=max(2, int(math.ceil(scale)) + 1)) & region
+    mask = _clean(mask, base)
+    outline = (cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0) & ~mask
+    confirmed = float(explained[outline].mean()) if outline.any() else 0.0
+    return mask, confirmed
+
+
+def _plausibility(masks: np.ndarray, confirmed: np.ndarray) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Quality (V,) and status per frame from areas, borders and outline support."""
+    V, H, W = masks.shape
+    area = masks.reshape(V, -1).sum(axis=1).astype(np.float64)
+    quality = np.zeros(V)
+    status = []
+    for i in range(V):
+        nb = [area[(i + d) % V] for d in (-2, -1, 1, 2) if V > 2 and (i + d) % V != i]
+        ref = float(np.median(nb)) if nb else area[i]
+        ratio = area[i] / ref if ref > 0 else (1.0 if area[i] == 0 else np.inf)
+        m = masks[i]
+        border = int(m[0].sum() + m[-1].sum() + m[:, 0].sum() + m[:, -1].sum())
+        quality[i] = confirmed[i] * (min(ratio, 1.0 / ratio) if ratio > 0 else 0.0)
+        if area[i] < 1e-4 * H * W:
+            status.append("empty silhouette")
+        elif border > 0.25 * (W + H):
+            status.append(f"silhouette touches the image border along {border} px")
+        elif not 0.67 <= ratio <= 1.5:
+            status.append(f"silhouette area jumps to {100 * ratio:.0f}% of its neighbours'")
+        elif confirmed[i] < 0.5:
+            status.append(f"only {100 * confirmed[i]:.0f}% of the outline is explained by the background")
+        else:
+            status.append("ok")
+    return quality, tuple(status)
+
+
+def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, spec: TargetSpec, *,
+                         progress: Callable[[int, int], None] | None = None) -> SilhouetteResult:
+    """Object silhouettes of a turntable sequence (fixed camera, table turning).
+
+    Parameters
+    ----------
+    images_rgb : (V, H, W, 3) uint8
+        Undistorted RGB frames.
+    K : (3, 3) float
+        Shared intrinsics, pixels.
+    T_cam_table : (V, 4, 4) float
+        Per-frame pose, table (mm) to camera (mm); the table frame turns with
+        the turntable.
+    spec : TargetSpec
+        The printed target: the object stands inside ``spec.extent_mm``.
+    progress : callable(done, total), optional
+        Called after each frame.
+
+    Returns
+    -------
+    SilhouetteResult
+        Masks, quality and per-frame status (see the module docstring).
+    """
+    imgs, K, T = _check_inputs(images_rgb, K, T_cam_table)
+    from .carving import largest_visible_height_mm
+
+    V, H, W = imgs.shape[:3]
+    radius = float(spec.extent_mm) + _MARGIN_MM
+    height = largest_visible_height_mm(K, T, W, H)
+    regions = [cylinder_region(K, t, (W, H), radius, height) for t in T]
+    union = np.any(regions, axis=0)
+    masks = np.zeros((V, H, W), bool)
+    if not union.any():
+        return SilhouetteResult(masks, np.zeros(V), tuple("the target region is not in view" for _ in range(V)))
+    rows, cols = np.flatnonzero(union.any(axis=1)), np.flatnonzero(union.any(axis=0))
+    y0, y1, x0, x1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+    crops = imgs[:, y0:y1, x0:x1]
+    outside = ~union
+    far = _colour_dist(imgs[:, outside][:, ::7], _median_frames(imgs[:, outside][:, ::7])) if outside.any() else None
+    tau = max(_MIN_TAU, 1.5 * float(np.percentile(far, 95))) if far is not None and far.size else _MIN_TAU
+    plates = _Plates(crops, imgs, K, T, (y0, x0), radius, tau)
+    confirmed = np.zeros(V)
+    for i in range(V):
+        base = cylinder_region(K, T[i], (W, H), radius, 0.0)[y0:y1, x0:x1]
+        masks[i, y0:y1, x0:x1], confirmed[i] = _frame_mask(crops[i], regions[i][y0:y1, x0:x1], base, plates,
+                                                           T[i], tau)
+        if progress is not None:
+            progress(i + 1, V)
+    quality, status = _plausibility(masks, confirmed)
+    return SilhouetteResult(masks=masks, quality=quality, status=status)
