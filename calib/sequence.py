@@ -65,7 +65,7 @@ __all__ = [
 
 #: Largest 1-sigma accepted for an optional intrinsic parameter; beyond it the
 #: views do not constrain it and it is kept at its default.
-MAX_STD = {"cx": 2.0, "cy": 2.0, "k1": 0.005, "k2": 0.03}
+MAX_STD = {"cx": 2.0, "cy": 2.0, "k1": 0.005, "k2": 0.01}
 #: angle_deg = TURN_SIGN * degrees(theta) with T_cam_table = T_cam_axis . RotY(theta) . Trans(d).
 TURN_SIGN = 1.0
 #: edge points used by the joint fit, all frames together (see calibrate_sequence).

@@ -43,17 +43,24 @@ def add_arguments(parser) -> None:
 
 
 def _progress_printer(stream, label: str):
+    """``tick(done, total)``: a live line on a terminal, a line per quarter otherwise."""
     t0 = time.perf_counter()
-    last = [0.0]
+    last = [0.0, -1]
+    tty = bool(getattr(stream, "isatty", lambda: False)())
 
     def tick(done: int, total: int) -> None:
         now = time.perf_counter()
-        if now - last[0] < 0.5 and done < total:
-            return
+        if tty:
+            if now - last[0] < 0.2 and done < total:
+                return
+            stream.write(f"\r{label}: {done}/{total} frames·stages ({now - t0:.1f} s)" + ("\n" if done >= total else ""))
+        else:
+            quarter = 4 * done // max(total, 1)
+            if quarter == last[1]:
+                return
+            last[1] = quarter
+            stream.write(f"{label}: {done}/{total} ({now - t0:.1f} s)\n")
         last[0] = now
-        stream.write(f"\r{label}: {done}/{total} ({now - t0:.1f} s)")
-        if done >= total:
-            stream.write("\n")
         stream.flush()
 
     return tick
