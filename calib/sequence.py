@@ -68,6 +68,8 @@ __all__ = [
 MAX_STD = {"cx": 2.0, "cy": 2.0, "k1": 0.005, "k2": 0.01}
 #: angle_deg = TURN_SIGN * degrees(theta) with T_cam_table = T_cam_axis . RotY(theta) . Trans(d).
 TURN_SIGN = 1.0
+#: read the marks a second time through the joint turntable model (see _reread_marks).
+REREAD_MARKS = True
 #: edge points used by the joint fit, all frames together (see calibrate_sequence).
 POINT_BUDGET = 40_000
 #: |marks - step| beyond this (deg) is reported per frame.
@@ -736,10 +738,11 @@ def calibrate_sequence(
         raise CalibrationError(f"no frame could be calibrated ({summary})")
     obs0 = observations[ok[0]]
     return _calibrate_from_singles(singles, reasons, ok, names, (obs0.width, obs0.height), spec, step_deg,
-                                   intrinsics, mode, pp, distortion)
+                                   intrinsics, mode, pp, distortion, angle_reader)
 
 
-def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, intr, mode, pp, distortion):
+def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, intr, mode, pp, distortion,
+                            reader=None):
     n = len(singles)
     W, H = size
     have_step = step_deg is not None
@@ -796,8 +799,33 @@ def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, i
         fit = _extend(fit, base, tuple(extra), notes)
     else:
         notes["intrinsics"] = "given: edges undistorted with them, K kept"
+    if chosen == "turntable" and reader is not None and REREAD_MARKS:
+        fit = _reread_marks(fit, used, reader)
     return _result(fit, chosen, why, singles, reasons, ok, used, names, size, intr, notes, checks,
                    rms_pooled, centre_rms)
+
+
+def _reread_marks(fit: _Fit, used: list[int], reader: AngleReader) -> _Fit:
+    """Read the marks again through the joint model's camera and poses, and refit.
+
+    The first reading went through each frame's single-view ``f`` and normal;
+    the joint ones are better, and so is the rectified mark track.
+    """
+    p, st = fit.problem, fit.state
+    Ts = st.poses()
+    mark_R, w = list(p.mark_R), p.mark_w.copy()
+    for i, k in enumerate(used):
+        if mark_R[i] is None:
+            continue
+        try:
+            T, std = reader(k, st.K, Ts[i])
+        except CalibrationError:
+            continue  # keep the first reading
+        mark_R[i] = np.asarray(T, float)[:3, :3]
+        w[i] = _mark_weights([std], fit.rms_px)[0]
+    prob = _Problem(p.frames, st, p.free_intr, p.free_stroke, p.model, free_theta=p.free_theta,
+                    free_yaw=p.free_yaw, mark_R=mark_R, mark_w=w)
+    return _solve(prob, robust=False)
 
 
 def _initial_angles(singles, angled, names, step_deg):

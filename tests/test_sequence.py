@@ -104,8 +104,8 @@ def perturbed_single_view(Ts_true, K_true, rng):
     return single, lookup
 
 
-def run_synthetic(monkeypatch, rng, K, dist, Ts, **kw):
-    obs = [synth_observation(K, dist, T, rng) for T in Ts]
+def run_synthetic(monkeypatch, rng, K, dist, Ts, n_per_edge=400, **kw):
+    obs = [synth_observation(K, dist, T, rng, n_per_edge=n_per_edge) for T in Ts]
     single, lookup = perturbed_single_view(Ts, K, rng)
     lookup.extend(range(len(obs)))
     monkeypatch.setattr(cs, "_single_view", single)
@@ -127,8 +127,8 @@ def angle_errors_deg(seq, theta_true):
 # --------------------------------------------------------------------------- turntable
 def test_turntable_joint_fit_recovers_camera_axis_and_angles(monkeypatch):
     rng = np.random.default_rng(1)
-    K, theta, Ts = turntable_truth(rng, n=24, step=15.0, jitter=3.0)
-    seq = run_synthetic(monkeypatch, rng, K, np.zeros(5), Ts)
+    K, theta, Ts = turntable_truth(rng, n=18, step=20.0, jitter=3.0)
+    seq = run_synthetic(monkeypatch, rng, K, np.zeros(5), Ts, distortion="none")
     assert seq.mode == "turntable"
     assert all(f.ok for f in seq.frames)
     f_rel_err = abs(seq.intrinsics.focal_px / K[0, 0] - 1)
@@ -145,6 +145,7 @@ def test_turntable_joint_fit_recovers_camera_axis_and_angles(monkeypatch):
     off = seq.meta["turntable"]["pattern_offset_from_axis_mm"]
     assert np.allclose(off, [2.0, -1.5], atol=0.3)
     assert "unobservable" in seq.meta["not_estimated"]["principal_point"]
+    assert seq.meta["not_estimated"]["distortion"]
     assert abs(seq.meta["stroke_mm"] - TRUE_STROKE_MM) < 0.05
 
 
@@ -155,7 +156,7 @@ def test_turntable_step_fixes_angles_and_flags_disagreeing_marks(monkeypatch):
     D = make_T(np.eye(3), [2.0, 0.0, -1.5])  # turntable_truth's pattern offset
     Ts_bad = list(Ts)
     Ts_bad[5] = Ts[5] @ np.linalg.inv(D) @ make_T(cs.rot_y(math.radians(4.0)), np.zeros(3)) @ D
-    obs = [synth_observation(K, np.zeros(5), T, rng) for T in Ts_bad]
+    obs = [synth_observation(K, np.zeros(5), T, rng, n_per_edge=200) for T in Ts_bad]
     single, lookup = perturbed_single_view(Ts_bad, K, rng)
     lookup.extend(range(len(obs)))
     monkeypatch.setattr(cs, "_single_view", single)
@@ -171,7 +172,7 @@ def test_handheld_sweep_estimates_principal_point_and_k1(monkeypatch):
     rng = np.random.default_rng(3)
     K, Ts = handheld_truth(rng, n=8, pp=(20.0, -12.0))
     dist = np.array([-0.1, 0.0, 0.0, 0.0, 0.0])
-    seq = run_synthetic(monkeypatch, rng, K, dist, Ts, max_points_per_edge=400)
+    seq = run_synthetic(monkeypatch, rng, K, dist, Ts, n_per_edge=1000, max_points_per_edge=400)
     assert seq.mode == "handheld"
     assert abs(seq.intrinsics.focal_px / K[0, 0] - 1) < 0.005
     assert np.all(np.abs(seq.intrinsics.principal_point_px - K[:2, 2]) < 2.0)  # px
