@@ -95,19 +95,21 @@ def _tsdf(hull: VoxelHull, zbufs, K_sub, Ts, tau, hull_weight, delta, step, prog
     cnt = np.zeros(len(pts), np.float32)
     for i, (zb, T) in enumerate(zip(zbufs, Ts)):
         P = (K_sub @ T[:3, :]).astype(np.float32)
-        uvw = pts @ P[:, :3].T + P[:, 3]
-        z = uvw[:, 2]
+        uvw = pts @ P[:, :3].T
+        uvw += P[:, 3]
+        z = uvw[:, 2]  # > 0: the hull is in front of every camera
         h, w = zb.shape
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x = np.rint(uvw[:, 0] / z)
-            y = np.rint(uvw[:, 1] / z)
-        inb = (z > 0) & (x >= 0) & (y >= 0) & (x < w) & (y < h)
-        obs = np.zeros(len(pts), np.float32)
-        obs[inb] = zb[y[inb].astype(np.intp), x[inb].astype(np.intp)]
-        phi = z - obs
+        inv = np.float32(1.0) / np.maximum(z, np.float32(1e-6))
+        x = (uvw[:, 0] * inv + np.float32(0.5)).astype(np.int32)  # rounding; negatives fail the bounds test
+        y = (uvw[:, 1] * inv + np.float32(0.5)).astype(np.int32)
+        inb = (x >= 0) & (y >= 0) & (x < w) & (y < h) & (uvw[:, 0] > -0.5 * z) & (uvw[:, 1] > -0.5 * z)
+        sel = np.flatnonzero(inb)
+        obs = zb[y[sel], x[sel]]
+        phi = z[sel] - obs
         upd = (obs > 0) & (phi < tau)
-        acc[upd] += np.maximum(phi[upd], -tau)
-        cnt[upd] += 1.0
+        sel = sel[upd]
+        acc[sel] += np.maximum(phi[upd], -tau)
+        cnt[sel] += 1.0
         if progress is not None:
             progress(i + 1, len(Ts))
     D = np.clip(coarse, -tau, tau)
