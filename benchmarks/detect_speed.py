@@ -66,7 +66,7 @@ def main() -> int:
     wall, cpu, coarse_wall, errs, fails = [], [], [], [], 0
     for p in photos:
         grey = rings._grey(p.image)
-        cw, _, _ = timed(rings._coarse_ellipses, grey)
+        cw, _, _ = timed(rings._coarse_ellipses, grey, 2)
         try:
             w_ms, c_ms, obs = timed(rings.detect_rings, p.image, SPEC)
         except CalibrationError:

@@ -3,7 +3,8 @@
 Pipeline (``detect_rings``):
 
 1. Coarse search on the image area-downsampled to about 640 px: Canny arcs,
-   RANSAC over arcs into ellipses (``calib.arcs``).
+   RANSAC over arcs into ellipses (``calib.arcs``); if that finds no target,
+   again at full resolution (a target too small for the coarse image).
 2. Strokes: ellipses that are the two edges of one printed stroke (concentric,
    radius ratio near 1) are merged; each remaining ellipse is a ring candidate.
 3. The pair: two candidates whose conics ``C_o``, ``C_i`` belong to concentric
@@ -88,10 +89,9 @@ def _grey(image) -> np.ndarray:
     raise ValueError(f"image: expected (H, W) or (H, W, 3), got {img.shape}")
 
 
-def _coarse_ellipses(grey: np.ndarray) -> tuple[list[np.ndarray], list[float]]:
-    """Ellipse conics (full-resolution pixels) found by the coarse search, and their support."""
+def _coarse_ellipses(grey: np.ndarray, f: int) -> tuple[list[np.ndarray], list[float]]:
+    """Ellipse conics (full-resolution pixels) found on ``grey`` downsampled ``f`` times, and their support."""
     h, w = grey.shape
-    f = max(1, int(round(max(h, w) / COARSE_SIZE_PX)))
     if f > 1:
         small = cv2.resize(grey[: h // f * f, : w // f * f], (w // f, h // f), interpolation=cv2.INTER_AREA)
     else:
@@ -256,14 +256,20 @@ def detect_rings(image, spec: TargetSpec, *, principal_point_px=None) -> TargetO
     """
     grey = _grey(image)
     h, w = grey.shape
-    conics, support = _coarse_ellipses(grey)
-    pairs = _candidate_pairs(_strokes(conics, support, spec), spec)
+    f = max(1, int(round(max(h, w) / COARSE_SIZE_PX)))
     first_error = None
-    for Co, Ci in pairs:
+    for factor in dict.fromkeys((f, 1)):  # full resolution again for a target too small to see at f
         try:
-            return _fine(grey, Co, Ci, spec)
+            conics, support = _coarse_ellipses(grey, factor)
+            pairs = _candidate_pairs(_strokes(conics, support, spec), spec)
         except CalibrationError as exc:
             first_error = first_error or exc
+            continue
+        for Co, Ci in pairs:
+            try:
+                return _fine(grey, Co, Ci, spec)
+            except CalibrationError as exc:
+                first_error = first_error or exc
     raise first_error
 
 
@@ -280,7 +286,7 @@ def _fine(grey: np.ndarray, Co: np.ndarray, Ci: np.ndarray, spec: TargetSpec) ->
     for name in radii:  # pass 2: from the fitted edge conics
         C_in, C_out, C_mid = fits[name][:3]
         w_px = _median_width(C_mid, C_in, C_out)
-        found = _search_pencil(gf, C_mid, C_in, C_out, 1.5 + 0.25 * w_px, gap_px=2.0 + w_px, spacing_px=1.5)
+        found = _search_pencil(gf, C_mid, C_in, C_out, 1.5 + 0.25 * w_px, gap_px=2.0 + w_px, spacing_px=2.0)
         fits[name] = _fit_ring(found, name)
     split, ratio, _ = pencil_ratio(fits["outer"][2], fits["inner"][2])
     if np.sqrt(split) > CONCENTRIC_TOL:
