@@ -133,6 +133,19 @@ def _colour_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.abs(a.astype(np.int16) - b.astype(np.int16)).max(axis=-1).astype(np.float32)
 
 
+def _envelope(plate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-channel 3x3 min and max of a plate: agreement tolerates a pixel of blur or misregistration."""
+    k = np.ones((3, 3), np.uint8)
+    return cv2.erode(plate, k), cv2.dilate(plate, k)
+
+
+def _range_dist(img: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Largest per-channel distance (..., ) float32 from ``img`` to the interval [lo, hi]."""
+    i = img.astype(np.int16)
+    d = np.maximum(lo.astype(np.int16) - i, i - hi.astype(np.int16))
+    return np.maximum(d.max(axis=-1), 0).astype(np.float32)
+
+
 def _shadow_dist(img: np.ndarray, plate: np.ndarray) -> np.ndarray:
     """Distance (..., ) from ``img`` to the darkened plate ``g * plate`` (0.25 <= g <= 0.95) that fits it best."""
     i = img.astype(np.float32)
@@ -159,45 +172,57 @@ def _below_horizon(K, T, box, size_hw) -> np.ndarray:
     return dy < 0 if cam_above else dy > 0
 
 
+@dataclass(frozen=True)
+class _Plate:
+    """A background plate in the box of one frame: median, 3x3 envelope, where it is trusted."""
+
+    mid: np.ndarray  # (h, w, 3) uint8
+    lo: np.ndarray
+    hi: np.ndarray
+    trust: np.ndarray  # (h, w) bool
+
+
 class _Plates:
     """Room plate (image) and table plate (rectified plane), with where they are trusted."""
 
     def __init__(self, crops, images, K, T, box, radius_mm, tau):
-        self.room = _median_frames(crops)
-        agree = np.mean([_colour_dist(c, self.room) < tau for c in crops], axis=0)
-        self.room_trust = agree >= _TRUST
+        room = _median_frames(crops)
+        lo, hi = _envelope(room)
+        agree = np.mean([_range_dist(c, lo, hi) < tau for c in crops], axis=0)
+        self.room = _Plate(room, lo, hi, agree >= _TRUST)
         self.plane_radius = radius_mm + 40.0
         rect = np.stack([rectify_to_table(im, K, t, self.plane_radius, _PLANE_PX_PER_MM) for im, t in zip(images, T)])
         ones = np.ones(images.shape[1:3], np.uint8)
         seen = np.mean([rectify_to_table(ones, K, t, self.plane_radius, _PLANE_PX_PER_MM) > 0 for t in T], axis=0)
         self.table = _median_frames(rect)
-        agree = np.mean([_colour_dist(r, self.table) < tau for r in rect], axis=0)
+        self.table_lo, self.table_hi = _envelope(self.table)
+        agree = np.mean([_range_dist(r, self.table_lo, self.table_hi) < tau for r in rect], axis=0)
         self.table_trust = ((agree >= _TRUST) & (seen == 1.0)).astype(np.uint8)
         self.K, self.box = K, box
 
-    def table_in_frame(self, T: np.ndarray, size_hw) -> tuple[np.ndarray, np.ndarray]:
-        """Table plate (h, w, 3) and its trust (h, w) bool, warped into the box of frame ``T``."""
+    def table_in_frame(self, T: np.ndarray, size_hw) -> _Plate:
+        """The table plate warped into the box of frame ``T``."""
         h, w = size_hw
         y0, x0 = self.box
         n = self.table.shape[0]
         M = np.array([[1.0, 0, -x0], [0, 1.0, -y0], [0, 0, 1.0]]) @ plane_homography(self.K, T) \
             @ _raster_to_table(n, _PLANE_PX_PER_MM)
-        plate = cv2.warpPerspective(self.table, M, (w, h), flags=cv2.INTER_LINEAR, borderValue=0)
+        warp = [cv2.warpPerspective(p, M, (w, h), flags=cv2.INTER_LINEAR, borderValue=0)
+                for p in (self.table, self.table_lo, self.table_hi)]
         trust = cv2.warpPerspective(self.table_trust, M, (w, h), flags=cv2.INTER_NEAREST, borderValue=0) > 0
-        return plate, trust & _below_horizon(self.K, T, self.box, size_hw)
+        return _Plate(*warp, trust & _below_horizon(self.K, T, self.box, size_hw))
 
 
-def _initial_labels(img, region, room, room_trust, table, table_trust, tau):
+def _initial_labels(img, region, room: _Plate, table: _Plate, tau):
     """GrabCut labels (h, w) uint8 from the plates, the pixels a plate explains as background, and
     those a trusted plate contradicts."""
-    d_room_raw = _colour_dist(img, room)
-    d_tab_raw = _colour_dist(img, table)
-    d = np.minimum(np.where(room_trust, d_room_raw, np.inf), np.where(table_trust, d_tab_raw, np.inf))
-    s_room = np.where(room_trust, _shadow_dist(img, room), np.inf)
-    s_tab = np.where(table_trust, _shadow_dist(img, table), np.inf)
+    d = np.minimum(np.where(room.trust, _range_dist(img, room.lo, room.hi), np.inf),
+                   np.where(table.trust, _range_dist(img, table.lo, table.hi), np.inf))
+    s_room = np.where(room.trust, _shadow_dist(img, room.mid), np.inf)
+    s_tab = np.where(table.trust, _shadow_dist(img, table.mid), np.inf)
     shadow = np.minimum(s_room, s_tab) < tau
     explained = d < tau
-    trusted = room_trust | table_trust
+    trusted = room.trust | table.trust
     k3 = np.ones((3, 3), np.uint8)
     labels = np.full(img.shape[:2], cv2.GC_PR_FGD, np.uint8)
     labels[explained | shadow] = cv2.GC_PR_BGD
@@ -243,18 +268,17 @@ def _refine_outline(prob, explained, disagrees, band_px: int) -> np.ndarray:
 
 
 def _clean(mask: np.ndarray, base: np.ndarray) -> np.ndarray:
-    """Keep the components touching the base region (else the largest) and fill small holes."""
+    """Keep the largest component touching the base region (and any a tenth its size) and fill small holes."""
     n, lab, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     if n <= 1:
         return mask
     touching = np.unique(lab[base & mask])
     touching = touching[touching > 0]
-    keep = touching if len(touching) else [1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))]
-    big = max(stats[k, cv2.CC_STAT_AREA] for k in keep)
-    keep = [k for k in keep if stats[k, cv2.CC_STAT_AREA] >= 0.01 * big]
+    cand = touching if len(touching) else np.arange(1, n)
+    big = stats[cand, cv2.CC_STAT_AREA].max()
+    keep = [k for k in cand if stats[k, cv2.CC_STAT_AREA] >= 0.1 * big]
     out = np.isin(lab, keep)
-    holes = ~out
-    nh, hl, hs, _ = cv2.connectedComponentsWithStats(holes.astype(np.uint8), connectivity=4)
+    nh, hl, hs, _ = cv2.connectedComponentsWithStats((~out).astype(np.uint8), connectivity=4)
     small = np.flatnonzero(hs[:, cv2.CC_STAT_AREA] < max(16, 0.002 * out.sum())) if nh > 1 else []
     for h in small:
         x, y, w, hh = hs[h, :4]
@@ -266,9 +290,7 @@ def _clean(mask: np.ndarray, base: np.ndarray) -> np.ndarray:
 def _frame_mask(img, region, base, plates: _Plates, T, tau) -> tuple[np.ndarray, float]:
     """Mask (h, w) bool of one frame inside the box, and the fraction of its outline a plate confirms."""
     h, w = img.shape[:2]
-    table, table_trust = plates.table_in_frame(T, (h, w))
-    labels, explained, disagrees = _initial_labels(img, region, plates.room, plates.room_trust, table,
-                                                   table_trust, tau)
+    labels, explained, disagrees = _initial_labels(img, region, plates.room, plates.table_in_frame(T, (h, w)), tau)
     prob = _grabcut(img, labels)
     scale = math.sqrt(h * w / _WORK_PX)
     mask = _refine_outline(prob, explained, disagrees, band_px=max(2, int(math.ceil(scale)) + 1)) & region
