@@ -201,3 +201,24 @@ def test_inner_not_smaller_than_outer_is_a_clean_error(photos, capsys, r_inner):
     assert "Traceback" not in err
     assert "--r-inner" in err and "--r-outer" in err
     assert out == ""
+
+
+def test_unexpected_error_on_one_image_keeps_the_others(photos, capsys, monkeypatch):
+    import calib.rings
+
+    real = calib.rings.detect_rings
+    bad = photos["warped"]
+
+    def detect(image, spec, **kw):
+        if image.shape == (480, 640, 3) and np.array_equal(image, cv2.imread(str(bad.path))):
+            raise RuntimeError("simulated bug")
+        return real(image, spec, **kw)
+
+    monkeypatch.setattr(calib.rings, "detect_rings", detect)
+    rc, out, err = _run(capsys, [bad.path, photos["synth"].path, *TARGET_ARGS, "--json"])
+    assert rc == 1
+    assert "Traceback" not in err
+    assert f"{bad.path}: internal error: RuntimeError: simulated bug" in err
+    recs = json.loads(out)
+    assert recs[0]["status"] == "error"
+    _check_against_gt(recs[1], photos["synth"])

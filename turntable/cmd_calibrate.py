@@ -144,6 +144,11 @@ def run(args) -> int:
         except _ImageFailure as exc:
             img, obs = exc.img, exc.obs
             rec = {"image": str(path), "status": "error", "error": exc.reason}
+        except Exception as exc:  # a bug on one image must not lose the others' results
+            if getattr(args, "verbose", 0) >= 2:
+                raise
+            rec = {"image": str(path), "status": "error",
+                   "error": f"internal error: {type(exc).__name__}: {exc} (run with -vv for the traceback)"}
         if rec["status"] != "ok":
             failed += 1
             print(f"turntable calibrate: {path}: {rec['error']}", file=sys.stderr)
