@@ -194,6 +194,16 @@ def test_wrong_inner_radius_is_a_per_image_failure(photos, capsys):
     assert rec["status"] != "ok" and rec["error"]
 
 
+@pytest.mark.xfail(reason="calib.rings reports 'outer ring not found: only 0 stroke profiles' for rings whose "
+                          "radius ratio does not match --r-outer/--r-inner; the user should read that the ratio is "
+                          "wrong", strict=False)
+def test_wrong_inner_radius_message_names_the_ratio(photos, capsys):
+    ph = photos["synth"]
+    rc, out, err = _run(capsys, [ph.path, "--r-outer", "80", "--r-inner", "35"])
+    assert rc != 0
+    assert "ratio" in err.lower()
+
+
 @pytest.mark.parametrize("r_inner", ["80", "90"])
 def test_inner_not_smaller_than_outer_is_a_clean_error(photos, capsys, r_inner):
     rc, out, err = _run(capsys, [photos["synth"].path, "--r-outer", "80", "--r-inner", r_inner])
