@@ -229,7 +229,7 @@ def _initial_labels(img, region, room: _Plate, table: _Plate, tau):
     labels[cv2.erode(explained.astype(np.uint8), k3) > 0] = cv2.GC_BGD  # a plate explains the whole neighbourhood
     labels[trusted & (d > 3.0 * tau) & ~shadow] = cv2.GC_FGD
     labels[~region] = cv2.GC_BGD
-    return labels, explained | (shadow & ~explained), trusted & (d > tau) & ~shadow
+    return labels, explained, trusted & (d > tau) & ~shadow
 
 
 def _grabcut(img, labels, iterations: int = 2) -> np.ndarray:
