@@ -247,3 +247,13 @@ def test_angle_convention_matches_the_mark_reader(tmp_path):
         assert abs((own.angle_deg + 180.0) % 360.0 - 180.0) < 0.2  # deg
         first = marks.read_turntable_angle(img, seq.intrinsics.K, T0, opts.target_spec())
         assert abs((first.angle_deg + f.angle_deg + 180.0) % 360.0 - 180.0) < 0.2  # reads -angle_deg
+
+
+@pytest.mark.parametrize("handheld", [False, True])
+def test_far_camera_still_sees_the_table(tmp_path, handheld):
+    """The room grows with the camera distance: a far camera is never walled off."""
+    opts = _small_options(frames=2, distance_mm=1100.0, focal_px=260.0, handheld=handheld)
+    out = make_sequence(tmp_path / "far", opts)
+    for k in range(2):
+        mask = cv2.imread(str(out / "masks" / f"frame_{k:03d}.png"), cv2.IMREAD_UNCHANGED)
+        assert 20 < (mask > 0).sum() < mask.size // 4

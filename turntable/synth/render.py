@@ -99,6 +99,8 @@ _AA_LUMA_STEP = 0.05  # sRGB step to a neighbour that triggers supersampling
 def _light_dirs(scene: SynthScene, n: int) -> np.ndarray:
     """``n`` unit light directions (n, 3) spread over the light's cone (a spiral)."""
     L = scene.light_dir_world
+    if n == 1:
+        return L[None, :].astype(np.float32)
     e1 = np.cross(L, [0.0, 0.0, 1.0])
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(L, e1)

@@ -29,7 +29,7 @@ __all__ = ["SynthScene", "build_scene", "BACKDROPS"]
 BACKDROPS = ("dark", "light", "colour", "clutter")
 
 _DISC_THICKNESS_MM = 15.0
-_ROOM_RADIUS_MM = 700.0
+_ROOM_RADIUS_MM = 700.0  # default radius of the round wall
 _ROOM_HEIGHT_MM = 2000.0
 _WALL_MM_PER_PX = 2.0
 
@@ -210,7 +210,7 @@ def _floor_texture(rng: np.random.Generator, half_mm: float, px_per_mm: float) -
 
 def build_scene(mesh: trimesh.Trimesh, spec: TargetSpec, backdrop: str = "dark", *,
                 rng: np.random.Generator, target_px_per_mm: float = 6.0,
-                backdrop_distance_mm: float | None = None,
+                backdrop_distance_mm: float | None = None, room_radius_mm: float = _ROOM_RADIUS_MM,
                 light_dir_world=(-0.45, 1.0, 0.55)) -> SynthScene:
     """Assemble the turntable and room ray-casting scenes around ``mesh``.
 
@@ -233,8 +233,10 @@ def build_scene(mesh: trimesh.Trimesh, spec: TargetSpec, backdrop: str = "dark",
     backdrop_distance_mm : float, optional
         Puts a flat backdrop (the wall texture) in the world plane
         ``Z = -backdrop_distance_mm``, behind the turntable for a camera on
-        the +Z side; without it only a round wall 700 mm from the centre
-        surrounds the table (hand-held sequences look from every side).
+        the +Z side; without it only the round wall surrounds the table
+        (hand-held sequences look from every side).
+    room_radius_mm : float
+        Radius of the round wall; every camera must stand inside it.
     light_dir_world : (3,) array_like
         Direction towards the light, world frame (normalised here).
     """
@@ -252,11 +254,13 @@ def build_scene(mesh: trimesh.Trimesh, spec: TargetSpec, backdrop: str = "dark",
     disc_id = tt.add_triangles(o3d.core.Tensor(dv), o3d.core.Tensor(df))
 
     room = o3d.t.geometry.RaycastingScene()
-    R = _ROOM_RADIUS_MM * 1.2
+    if not room_radius_mm > disc_r + 50.0:
+        raise ValueError(f"room radius {room_radius_mm} mm leaves no room around the turntable")
+    R = room_radius_mm * 1.2
     fv = np.array([[-R, -_DISC_THICKNESS_MM, -R], [R, -_DISC_THICKNESS_MM, -R], [R, -_DISC_THICKNESS_MM, R],
                    [-R, -_DISC_THICKNESS_MM, R]], np.float32)
     floor_id = room.add_triangles(o3d.core.Tensor(fv), o3d.core.Tensor(np.array([[0, 2, 1], [0, 3, 2]], np.uint32)))
-    wv, wf = _cylinder(_ROOM_RADIUS_MM, -_DISC_THICKNESS_MM - 1.0, _ROOM_HEIGHT_MM, 512, caps=False)
+    wv, wf = _cylinder(room_radius_mm, -_DISC_THICKNESS_MM - 1.0, _ROOM_HEIGHT_MM, 512, caps=False)
     wall_id = room.add_triangles(o3d.core.Tensor(wv), o3d.core.Tensor(wf))
     backdrop_id = -1
     if backdrop_distance_mm is not None:
@@ -270,7 +274,7 @@ def build_scene(mesh: trimesh.Trimesh, spec: TargetSpec, backdrop: str = "dark",
     colors = np.asarray(mesh.visual.vertex_colors)[:, :3] if mesh.visual.kind == "vertex" else np.full((len(V), 3), 180)
     light = np.asarray(light_dir_world, float)
     side = _srgb_to_linear(np.array([0.25, 0.24, 0.26]) * rng.uniform(0.8, 1.1, 3))
-    floor_ppm = 1.0
+    floor_ppm = min(1.0, 2000.0 / (2.0 * R))  # at most a 2000^2 raster
     return SynthScene(
         turntable=tt, room=room, object_id=int(object_id), disc_id=int(disc_id), floor_id=int(floor_id),
         wall_id=int(wall_id), backdrop_id=backdrop_id, vertices_table=V, faces=F,

@@ -44,7 +44,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from calib.camera import make_T
+from calib.camera import invert_T, make_T
 from calib.target import TargetSpec
 from calib.types import FramePose, Intrinsics, SequenceCalibration
 from turntable.cameras_io import write_cameras
@@ -265,11 +265,14 @@ def make_sequence(out_dir: str | os.PathLike, options: SynthOptions, overwrite: 
     intr = options.intrinsics()
     ppm = float(np.clip(1.5 * options.focal_px / (options.distance_mm - spec.r_outer_mm), 2.0, 8.0))
     backdrop_mm = None if options.handheld else _BACKDROP_BEHIND_MM + spec.r_outer_mm + 40.0
-    light = _light_direction(np.random.default_rng(seeds[4]))
-    scene = build_scene(mesh, spec, options.backdrop, rng=np.random.default_rng(seeds[1]), target_px_per_mm=ppm,
-                        backdrop_distance_mm=backdrop_mm, light_dir_world=light)
     height = float(np.asarray(mesh.vertices)[:, 1].max())
     angles, T_cam_tables, T_world_tables = camera_poses(options, height, np.random.default_rng(seeds[2]))
+    # the round wall stands well behind every camera (cameras in world coordinates)
+    far = max(np.hypot(*(T_wt @ invert_T(T))[[0, 2], 3]) for T, T_wt in zip(T_cam_tables, T_world_tables))
+    room_mm = max(700.0, 1.3 * far + 100.0)
+    light = _light_direction(np.random.default_rng(seeds[4]))
+    scene = build_scene(mesh, spec, options.backdrop, rng=np.random.default_rng(seeds[1]), target_px_per_mm=ppm,
+                        backdrop_distance_mm=backdrop_mm, room_radius_mm=room_mm, light_dir_world=light)
     noise_rngs = [np.random.default_rng(s) for s in seeds[3].spawn(options.frames)]
     ext = "png" if options.jpeg == 0 else "jpg"
 
@@ -314,6 +317,7 @@ def make_sequence(out_dir: str | os.PathLike, options: SynthOptions, overwrite: 
             "disc_radius_mm": scene.disc_radius_mm,
             "disc_thickness_mm": _DISC_THICKNESS_MM,
             "backdrop_distance_mm": backdrop_mm,
+            "room_radius_mm": room_mm,
             "target_px_per_mm": ppm,
             "light_dir_world": scene.light_dir_world.tolist(),
             "object_height_mm": height,
