@@ -18,6 +18,7 @@ scored by the length of the arcs whose samples lie within a Sampson distance
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import combinations
 
 import cv2
 import numpy as np
@@ -89,23 +90,24 @@ def extract_arcs(grey: np.ndarray, *, min_length: int = 12, samples: int = 6,
     gy = cv2.Sobel(g, cv2.CV_16S, 0, 1, ksize=3)
     gain = 3.0  # Sobel 3x3 peak response per grey level of a sigma-1 blurred step
     edges = cv2.Canny(gx, gy, low_frac * gain * contrast, high_frac * gain * contrast, L2gradient=True)
+    vs, us = np.nonzero(edges)
+    gxe, gye = gx[vs, us], gy[vs, us]
     # gradient quadrant in angular order: 0 (+,+), 1 (-,+), 2 (-,-), 3 (+,-)
-    quad = np.where(gx >= 0, np.where(gy >= 0, 0, 3), np.where(gy >= 0, 1, 2)).astype(np.uint8)
-    labels = np.zeros((h, w), np.int32)
+    quad = np.where(gxe >= 0, np.where(gye >= 0, 0, 3), np.where(gye >= 0, 1, 2))
+    lab = np.empty(len(vs), np.int64)
     n_total = 0
     quads = []
     near = []  # pixels within partner_px (Chebyshev) of an edge pixel of each quadrant
     kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * int(partner_px) + 1, 2 * int(partner_px) + 1))
     for q in range(4):
-        m = ((edges > 0) & (quad == q)).astype(np.uint8)
+        sel = quad == q
+        m = np.zeros((h, w), np.uint8)
+        m[vs[sel], us[sel]] = 1
         near.append(cv2.dilate(m, kernel))
-        n, lab = cv2.connectedComponents(m, connectivity=8, ltype=cv2.CV_32S)
-        sel = lab > 0
-        labels[sel] = lab[sel] + n_total
+        n, labels = cv2.connectedComponents(m, connectivity=8, ltype=cv2.CV_32S)
+        lab[sel] = labels[vs[sel], us[sel]] - 1 + n_total
         n_total += n - 1
         quads.append(np.full(n - 1, q))
-    vs, us = np.nonzero(labels)
-    lab = labels[vs, us] - 1
     counts = np.bincount(lab, minlength=n_total)
     keep = counts >= min_length
     remap = -np.ones(n_total, np.int64)
@@ -234,7 +236,7 @@ def sampson_batch(C: np.ndarray, uv_px: np.ndarray) -> np.ndarray:
 
 
 def find_ellipses(arcs: Arcs, image_size: tuple[int, int], *, tol_px: float = 1.5,
-                  n_seeds: int = 12, n_eval: int = 80, max_ellipses: int = 12,
+                  n_seeds: int = 8, n_eval: int = 80, max_ellipses: int = 12,
                   min_coverage: float = 0.2, min_axis_px: float = 4.0,
                   min_aspect: float = 0.08, gap_px: float = 5.0, lone_weight: float = 0.3) -> list[ArcEllipse]:
     """Ellipses made of several arcs, best supported first (RANSAC over arcs).
@@ -316,8 +318,9 @@ def _adjacent(ends: np.ndarray, quadrant: np.ndarray, gap_px: float):
     adj = (d < gap_px) & ((dq == 1) | (dq == 3))
     ai, aj = np.nonzero(np.triu(adj, 1))
     # triples: k in the middle, two distinct neighbours i < j
-    t = adj[:, :, None] & adj[None, :, :] & np.triu(np.ones((n, n), bool), 1)[:, None, :]
-    ti, tk, tj = np.nonzero(t)
+    triples = [(i, k, j) for k in np.flatnonzero(adj.sum(axis=1) >= 2)
+               for i, j in combinations(np.flatnonzero(adj[k]), 2)]
+    ti, tk, tj = np.array(triples, dtype=np.int64).reshape(-1, 3).T
     return ai, aj, ti, tk, tj
 
 

@@ -281,7 +281,7 @@ def _fine(grey: np.ndarray, Co: np.ndarray, Ci: np.ndarray, spec: TargetSpec) ->
     coarse = {"outer": _shift(Co, origin), "inner": _shift(Ci, origin)}
     fits = {}
     for name, R in radii.items():  # pass 1: each ring on its own, from the coarse conic
-        found = _search_scaled(gf, coarse[name], spec.stroke_mm / 2.0 / R, spacing_px=3.0)
+        found = _search_scaled(gf, coarse[name], spec.stroke_mm / 2.0 / R, spacing_px=4.0)
         fits[name] = _fit_ring(found, name)
     for name in radii:  # pass 2: from the fitted edge conics
         C_in, C_out, C_mid = fits[name][:3]
