@@ -31,7 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames", type=int, default=36, help="number of frames (default 36)")
     p.add_argument("--step-deg", type=float, default=10.0, help="turntable step per frame, degrees (default 10)")
     p.add_argument("--jitter-deg", type=float, default=0.0,
-                   help="random error of each turntable step (std, degrees; default 0)")
+                   help="random error of each frame's turntable angle (std, degrees; default 0)")
     p.add_argument("--size", type=_size, default=(1280, 960), metavar="WxH", help="image size (default 1280x960)")
     p.add_argument("--focal-px", type=float, default=1500.0, help="focal length, pixels (default 1500)")
     p.add_argument("--elevation-deg", type=float, default=30.0,

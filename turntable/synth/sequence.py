@@ -17,9 +17,11 @@ The key light comes from a random direction (per seed) 40-70 deg above the
 table on the camera's side and stays fixed in the world, so shading and the
 object's shadow on the target move as the table turns.
 
-Hand-held mode: the table stands still (θ_k = 0) and the camera walks around
-it: azimuth ``k * step_deg`` plus jitter, and random elevation, distance, roll
-and aim point per frame.
+Hand-held mode: the table stands still (θ_k = 0, world = table frame) and the
+camera walks around it: azimuth ``k * step_deg`` + N(0, max(jitter_deg, 2)),
+elevation ``elevation_deg`` + N(0, 7) clipped to [12, 75], distance
+``distance_mm`` x (1 + N(0, 0.08)) clipped to [0.8, 1.25], roll N(0, 6) (all
+degrees), aim point moved by N(0, 5 mm) per axis.
 
 Files written into the output folder (whole or not at all):
 
