@@ -54,7 +54,8 @@ class StrokeEdges:
 def conic_samples(C: np.ndarray, spacing_px: float, max_samples: int = 4000) -> tuple[np.ndarray, np.ndarray]:
     """Points on an ellipse conic about ``spacing_px`` apart, with outward unit normals.
 
-    Returns ``uv_px`` (M, 2) and ``normals`` (M, 2), in order around the ellipse.
+    Returns ``uv_px`` (M, 2) and ``normals`` (M, 2), in order around the ellipse;
+    at least 120 points (or ``max_samples``), closer together on a small ellipse.
     """
     e = conic_to_ellipse(C)
     n_dense = 720
@@ -63,7 +64,7 @@ def conic_samples(C: np.ndarray, spacing_px: float, max_samples: int = 4000) -> 
     x, y = e.a * np.cos(t), e.b * np.sin(t)
     seg = np.hypot(np.diff(np.append(x, x[0])), np.diff(np.append(y, y[0])))
     arc = np.concatenate([[0.0], np.cumsum(seg)])
-    m = int(np.clip(np.ceil(arc[-1] / spacing_px), 16, max_samples))
+    m = int(np.clip(np.ceil(arc[-1] / spacing_px), min(120, max_samples), max_samples))
     t_u = np.interp(np.linspace(0.0, arc[-1], m, endpoint=False), arc, np.append(t, 2 * np.pi))
     x, y = e.a * np.cos(t_u), e.b * np.sin(t_u)
     uv = np.column_stack([e.center_px[0] + ca * x - sa * y, e.center_px[1] + sa * x + ca * y])

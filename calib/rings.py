@@ -7,19 +7,23 @@ Pipeline (``detect_rings``):
    again at full resolution (a target too small for the coarse image).
 2. Strokes: ellipses that are the two edges of one printed stroke (concentric,
    radius ratio near 1) are merged; each remaining ellipse is a ring candidate.
-3. The pair: two candidates whose conics ``C_o``, ``C_i`` belong to concentric
-   circles with the target's radius ratio. For concentric circles the pencil
+3. Pairs: two candidates whose conics ``C_o``, ``C_i`` may belong to concentric
+   circles with the target's radius ratio (loose tolerances: the coarse fits of
+   occluded, foreshortened rings are rough). For concentric circles the pencil
    ``inv(C_i) C_o`` has eigenvalues ``(s, s, s (R_o / R_i)^2)``: the split of the
-   double eigenvalue measures non-concentricity, the distinct / double ratio the
-   squared radius ratio, both projectively (no camera needed).
-4. Fine search at full resolution along the normals of the predicted strokes
-   (``calib.edges``), twice: first from the coarse conics (the pencil predicts
-   the edge conics of radii ``R -+ w/2``), then from the conics fitted to the
-   first pass. Robust conic fits drop far outliers (Sampson > 3 px).
+   double eigenvalue measures non-concentricity (its square root grows about
+   like centre offset / radius), the distinct / double ratio is the squared
+   radius ratio, both projectively (no camera needed).
+4. Fine search at full resolution along the normals of each ring's conic
+   (``calib.edges``), twice: first from the coarse conic, the stroke's
+   half-width predicted as ``(w/2) / R`` of the distance to the ellipse centre,
+   then from the edge conics fitted to the first pass. Robust conic fits drop
+   far outliers (Sampson > 3 px). The best pairs are tried in turn; the refined
+   centre-line conics must pass the pencil tests with tight tolerances.
 
-The edge conic of any radius ``r`` follows from the two centre-line conics
-scaled alike (``C_o / s``): ``C(r) = a C_o / s + (1 - a) C_i`` with
-``a = (r^2 - R_i^2) / (R_o^2 - R_i^2)``.
+:func:`edge_conic` predicts the conic of any radius ``r`` from the two
+centre-line conics scaled alike (``C_o / s``):
+``C(r) = a C_o / s + (1 - a) C_i`` with ``a = (r^2 - R_i^2) / (R_o^2 - R_i^2)``.
 """
 
 from __future__ import annotations
@@ -47,6 +51,7 @@ RATIO_TOL = 0.03            # refined pair: relative tolerance on the radius rat
 MAX_PAIRS = 3               # coarse pairs tried at full resolution, best first
 MAX_OUTLIER_PX = 3.0        # Sampson distance beyond which an edge point is dropped
 MIN_EDGE_POINTS = 30
+
 
 def pencil_ratio(C_big: np.ndarray, C_small: np.ndarray) -> tuple[float, float, float]:
     """Concentricity and radius ratio of two image conics of coplanar circles.
