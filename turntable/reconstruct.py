@@ -305,7 +305,7 @@ def _summary(seq, names, skipped, mesh, progress, fusion_note, files) -> dict:
 
     tm = trimesh.Trimesh(mesh.vertices_table, mesh.faces, process=False)
     meta = seq.meta
-    std_f = meta.get("std", {}).get("focal_px") if isinstance(meta.get("std"), dict) else None
+    std_f = meta.get("focal_std_px")
 
     def num(x):
         return None if x is None or (isinstance(x, float) and math.isnan(x)) else x
