@@ -81,9 +81,10 @@ MODE_RMS_RATIO = 1.3
 #: turntable model considered when the camera centres fit one circle within this fraction of the distance.
 MODE_CENTRE_TOL = 0.02
 
-#: ``reader(frame_index, K, T_cam_table) -> (T_cam_table_aligned, std_deg)``: the pose rotated about
-#: the table normal so that table +X points at the printed 0 deg mark; raises CalibrationError.
-AngleReader = Callable[[int, np.ndarray, np.ndarray], tuple[np.ndarray, float]]
+#: ``reader(frame_index, K, T_cam_table, dist) -> (T_cam_table_aligned, std_deg)``: the pose rotated
+#: about the table normal so that table +X points at the printed 0 deg mark; ``dist`` (OpenCV
+#: coefficients of the raw image, or None); raises CalibrationError.
+AngleReader = Callable[[int, np.ndarray, np.ndarray, "np.ndarray | None"], tuple[np.ndarray, float]]
 
 
 # --------------------------------------------------------------------------- small geometry
@@ -514,11 +515,12 @@ def marks_angle_reader(images: Sequence[np.ndarray | None], spec: TargetSpec,
     """The default :data:`AngleReader`: ``calib.marks`` on ``images[k]`` (raw, distorted by ``dist``)."""
     from .marks import align_pose_to_marks, read_turntable_angle
 
-    def read(k: int, K: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, float]:
+    def read(k: int, K: np.ndarray, T: np.ndarray, dist_now: np.ndarray | None = None) -> tuple[np.ndarray, float]:
         img = images[k]
         if img is None:
             raise CalibrationError("no image to read the angle marks from")
-        a = read_turntable_angle(img, K, T, spec, dist=dist)
+        d = dist_now if dist_now is not None and np.any(dist_now) else dist
+        a = read_turntable_angle(img, K, T, spec, dist=d)
         return align_pose_to_marks(T, a.angle_deg), float(a.std_deg)
 
     return read
@@ -571,7 +573,7 @@ def _per_frame(observations, spec, intr, pp, reader, failures, max_per_edge, pro
                     K = intr.K if intr is not None else Intrinsics.from_focal(
                         s.focal_px, obs.width, obs.height, pp).K
                     try:
-                        T, std = reader(k, K, s.T)
+                        T, std = reader(k, K, s.T, None)
                         s.T, s.yaw_ok, s.angle_std_deg = np.asarray(T, float), True, float(std)
                     except CalibrationError as exc:
                         s.angle_error = str(exc)
@@ -607,7 +609,8 @@ def _fit_handheld(singles, idx, state0, free_intr, free_stroke):
 
 def _refit(fit: _Fit, free_intr: tuple[str, ...], state: _State | None = None) -> _Fit:
     p = fit.problem
-    return _solve(_Problem(p.frames, fit.state if state is None else state, free_intr, p.free_stroke, p.model, free_theta=p.free_theta,
+    return _solve(_Problem(p.frames, fit.state if state is None else state, free_intr, p.free_stroke, p.model,
+                           free_theta=p.free_theta,
                            free_yaw=p.free_yaw, mark_R=p.mark_R, mark_w=p.mark_w), robust=False)
 
 
@@ -823,8 +826,11 @@ def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, i
         fit = _distortion_must_pay(fit, base, notes)
     else:
         notes["intrinsics"] = "given: edges undistorted with them, K kept"
-    if chosen == "turntable" and reader is not None and REREAD_MARKS:
-        fit = _reread_marks(fit, used, reader)
+    if reader is not None and REREAD_MARKS:
+        if chosen == "turntable":
+            fit = _reread_marks(fit, used, reader)
+        else:
+            _reread_yaw(fit, used, singles, reader)
     return _result(fit, chosen, why, singles, reasons, ok, used, names, size, intr, notes, checks,
                    rms_pooled, centre_rms)
 
@@ -842,7 +848,7 @@ def _reread_marks(fit: _Fit, used: list[int], reader: AngleReader) -> _Fit:
         if mark_R[i] is None:
             continue
         try:
-            T, std = reader(k, st.K, Ts[i])
+            T, std = reader(k, st.K, Ts[i], st.dist)
         except CalibrationError:
             continue  # keep the first reading
         mark_R[i] = np.asarray(T, float)[:3, :3]
@@ -850,6 +856,23 @@ def _reread_marks(fit: _Fit, used: list[int], reader: AngleReader) -> _Fit:
     prob = _Problem(p.frames, st, p.free_intr, p.free_stroke, p.model, free_theta=p.free_theta,
                     free_yaw=p.free_yaw, mark_R=mark_R, mark_w=w)
     return _solve(prob, robust=False)
+
+
+def _reread_yaw(fit: _Fit, used: list[int], singles, reader: AngleReader) -> None:
+    """Handheld: set each frame's rotation about the normal from the marks read through the final camera.
+
+    The rings do not see it, so the fit kept the single-view reading, taken
+    through that frame's own f and without the distortion.
+    """
+    st = fit.state
+    for i, k in enumerate(used):
+        if not singles[k].yaw_ok:
+            continue
+        try:
+            T, _ = reader(k, st.K, make_T(st.R[i], st.t[i]), st.dist)
+        except CalibrationError:
+            continue
+        st.R[i] = np.asarray(T, float)[:3, :3]
 
 
 def _initial_angles(singles, angled, names, step_deg):

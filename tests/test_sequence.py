@@ -81,7 +81,7 @@ def handheld_truth(rng, n=8, f=1400.0, pp=(20.0, -12.0)):
 
 
 def fake_reader(Ts_true, rng, std_deg=0.05):
-    def read(k, K, T):
+    def read(k, K, T, dist=None):
         psi = cs._yaw_of(T[:3, :3].T @ Ts_true[k][:3, :3]) + math.radians(rng.normal(0, std_deg))
         return make_T(T[:3, :3] @ cs.rot_y(psi), T[:3, 3]), std_deg
 
@@ -205,7 +205,7 @@ def test_failed_frames_are_reported_and_the_rest_calibrate(monkeypatch):
     monkeypatch.setattr(cs, "_single_view", single)
     good = fake_reader(Ts, rng)
 
-    def reader(k, K_, T):
+    def reader(k, K_, T, dist=None):
         if k == 5:
             raise CalibrationError("angle marks unreadable: 3 edges visible")
         return good(k, K_, T)

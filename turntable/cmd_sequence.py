@@ -53,7 +53,8 @@ def _progress_printer(stream, label: str):
         if tty:
             if now - last[0] < 0.2 and done < total:
                 return
-            stream.write(f"\r{label}: {done}/{total} frames·stages ({now - t0:.1f} s)" + ("\n" if done >= total else ""))
+            end = "\n" if done >= total else ""
+            stream.write(f"\r{label}: {done}/{total} ({now - t0:.1f} s){end}")
         else:
             quarter = 4 * done // max(total, 1)
             if quarter == last[1]:
@@ -113,7 +114,8 @@ def summary_table(seq: SequenceCalibration) -> str:
             if i < dist.size))
     if m.get("stroke_mm") is not None:
         lines.append(f"stroke width    {m['stroke_mm']:.3f} mm ± {_fmt(m.get('stroke_std_mm'), '.3f')}")
-    lines.append(f"RMS             {_fmt(m.get('rms_px'), '.3f')} px (single views {_fmt(m.get('single_view_rms_px'), '.3f')} px)")
+    lines.append(f"RMS             {_fmt(m.get('rms_px'), '.3f')} px "
+                 f"(single views {_fmt(m.get('single_view_rms_px'), '.3f')} px)")
     tt = m.get("turntable")
     if tt:
         off = tt["pattern_offset_from_axis_mm"]
@@ -123,7 +125,8 @@ def summary_table(seq: SequenceCalibration) -> str:
     for name, why in m.get("not_estimated", {}).items():
         lines.append(f"note            {name}: {why}")
     for c in m.get("angle_checks", []):
-        lines.append(f"warning         {c['image']}: marks and --step-deg disagree by {c['marks_minus_step_deg']:+.2f}°")
+        lines.append(f"warning         {c['image']}: marks and --step-deg disagree by "
+                     f"{c['marks_minus_step_deg']:+.2f}°")
     return "\n".join(lines)
 
 
