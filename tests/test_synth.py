@@ -257,3 +257,21 @@ def test_far_camera_still_sees_the_table(tmp_path, handheld):
     for k in range(2):
         mask = cv2.imread(str(out / "masks" / f"frame_{k:03d}.png"), cv2.IMREAD_UNCHANGED)
         assert 20 < (mask > 0).sum() < mask.size // 4
+
+
+def test_failed_render_leaves_nothing_behind(tmp_path, monkeypatch):
+    import turntable.synth.sequence as sequence
+
+    calls = []
+
+    def failing_render(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError("disk on fire")
+        return render_view(*args, **kwargs)
+
+    monkeypatch.setattr(sequence, "render_view", failing_render)
+    with pytest.raises(RuntimeError, match="disk on fire"):
+        make_sequence(tmp_path / "seq", _small_options(frames=3, supersample=1))
+    assert len(calls) == 2
+    assert list(tmp_path.iterdir()) == [], "partial output or temporary folder left behind"
