@@ -149,7 +149,8 @@ def fused_surface(points: FusedPoints, hull: VoxelHull, K: np.ndarray, T_cam_tab
     size : (W, H), optional
         Image size.
     trunc_mm : float, optional
-        TSDF truncation ``tau``; default ``max(3 TSDF voxels, 2 mm)``.
+        TSDF truncation ``tau``; default ``max(2 TSDF voxels, 1.5 mm)`` (cup:
+        1.5 mm gave Chamfer 1.09 mm, 2.5 mm 1.11, 4 mm 1.13).
     hull_weight : float
         Weight of the hull prior, in views.
     delta_mm : float
@@ -182,7 +183,7 @@ def fused_surface(points: FusedPoints, hull: VoxelHull, K: np.ndarray, T_cam_tab
         zbufs = [_agreeing(zb, dm, stride, min_confidence, agree_mm) for zb, dm in zip(zbufs, depths)]
     K_sub = np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(K, float)
     step = int(tsdf_step) if tsdf_step is not None else max(1, int(round(1.0 / float(hull.voxel_mm))))
-    tau = float(trunc_mm) if trunc_mm is not None else max(3.0 * step * float(hull.voxel_mm), 2.0)
+    tau = float(trunc_mm) if trunc_mm is not None else max(2.0 * step * float(hull.voxel_mm), 1.5)
     F = _tsdf(hull, zbufs, K_sub, Ts, tau, hull_weight, float(delta_mm), step, progress)
     return hull_mesh(VoxelHull(values=F, origin_table=hull.origin_table, voxel_mm=hull.voxel_mm))
 
