@@ -124,6 +124,25 @@ def angle_errors_deg(seq, theta_true):
     return np.degrees(np.abs(d))
 
 
+# --------------------------------------------------------------------------- distortion model
+@pytest.mark.parametrize("dist", [[-0.1, 0.0, 0.0, 0.0], [-0.1, 0.05, 0.001, -0.0005, 0.01],
+                                  [0.05, -0.02, 0.0, 0.0, 0.0, 0.01, 0.0, 0.0]])
+def test_distortion_matches_opencv_and_inverts(dist):
+    import cv2
+
+    from calib.distortion import undistort_px
+
+    rng = np.random.default_rng(9)
+    K = np.array([[1400.0, 0, 650.0], [0, 1400.0, 470.0], [0, 0, 1.0]])
+    uv = rng.uniform([0, 0], [W, H], (500, 2))
+    rays = np.column_stack([(uv - K[:2, 2]) / K[0, 0], np.ones(len(uv))])
+    ref = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, np.asarray(dist))[0][:, 0]
+    assert np.max(np.abs(distort_px(uv, K, dist) - ref)) < 1e-9  # px
+    assert np.max(np.abs(undistort_px(ref, K, dist) - uv)) < 1e-9  # px, Newton to convergence
+    with pytest.raises(ValueError):
+        distort_px(uv, K, [0.1, 0.2, 0.3])
+
+
 # --------------------------------------------------------------------------- turntable
 def test_turntable_joint_fit_recovers_camera_axis_and_angles(monkeypatch):
     rng = np.random.default_rng(1)
