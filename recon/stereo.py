@@ -32,7 +32,7 @@ import numpy as np
 
 from .types import DepthMap, TableMesh, VoxelHull
 
-__all__ = ["depth_maps", "hull_depth_range", "hull_mesh", "select_neighbours"]
+__all__ = ["depth_maps", "hull_depth_range", "hull_mesh", "select_neighbours", "pixel_rays_table"]
 
 
 # --------------------------------------------------------------------------- hull range
