@@ -230,7 +230,8 @@ def _fit_ring(found, name: str):
     return C_in, C_out, C_mid, found.inner_uv_px[ok][k_in], found.outer_uv_px[ok][k_out]
 
 
-def detect_rings(image, spec: TargetSpec, *, principal_point_px=None) -> TargetObservation:
+def detect_rings(image, spec: TargetSpec, *, principal_point_px=None,
+                 edge_spacing_px: float = 2.0) -> TargetObservation:
     """Find the two printed rings and return sub-pixel points on both edges of each.
 
     Parameters
@@ -242,6 +243,10 @@ def detect_rings(image, spec: TargetSpec, *, principal_point_px=None) -> TargetO
     principal_point_px : (2,) array_like, optional
         Not needed by the detector (the pencil tests are projective); accepted so
         that callers can pass their intrinsics uniformly.
+    edge_spacing_px : float
+        Spacing of the returned edge points along each edge, pixels (one point
+        per normal profile); larger values return fewer points (faster
+        refinement), smaller ones more.
 
     Returns
     -------
@@ -260,6 +265,8 @@ def detect_rings(image, spec: TargetSpec, *, principal_point_px=None) -> TargetO
         For an image that is not uint8 (H, W) or (H, W, 3).
     """
     grey = _grey(image)
+    if not edge_spacing_px > 0:
+        raise ValueError(f"edge_spacing_px must be positive, got {edge_spacing_px}")
     h, w = grey.shape
     f = max(1, int(round(max(h, w) / COARSE_SIZE_PX)))
     first_error = None
@@ -272,13 +279,14 @@ def detect_rings(image, spec: TargetSpec, *, principal_point_px=None) -> TargetO
             continue
         for Co, Ci in pairs:
             try:
-                return _fine(grey, Co, Ci, spec)
+                return _fine(grey, Co, Ci, spec, edge_spacing_px)
             except CalibrationError as exc:
                 first_error = first_error or exc
     raise first_error
 
 
-def _fine(grey: np.ndarray, Co: np.ndarray, Ci: np.ndarray, spec: TargetSpec) -> TargetObservation:
+def _fine(grey: np.ndarray, Co: np.ndarray, Ci: np.ndarray, spec: TargetSpec,
+          spacing_px: float = 2.0) -> TargetObservation:
     """Full-resolution edges of the pair of coarse ring conics ``Co``, ``Ci`` (module docstring, 4.)."""
     h, w = grey.shape
     gf, origin = _fine_roi(grey, Co)
@@ -291,7 +299,8 @@ def _fine(grey: np.ndarray, Co: np.ndarray, Ci: np.ndarray, spec: TargetSpec) ->
     for name in radii:  # pass 2: from the fitted edge conics
         C_in, C_out, C_mid = fits[name][:3]
         w_px = _median_width(C_mid, C_in, C_out)
-        found = _search_pencil(gf, C_mid, C_in, C_out, 1.5 + 0.25 * w_px, gap_px=2.0 + w_px, spacing_px=2.0)
+        found = _search_pencil(gf, C_mid, C_in, C_out, 1.5 + 0.25 * w_px, gap_px=2.0 + w_px,
+                               spacing_px=spacing_px)
         fits[name] = _fit_ring(found, name)
     split, ratio, _ = pencil_ratio(fits["outer"][2], fits["inner"][2])
     if np.sqrt(split) > CONCENTRIC_TOL:

@@ -86,6 +86,10 @@ def test_detect_rings_grey_input_and_small_target():
     obs = detect_rings(grey, SPEC)
     for d in _edge_errors(obs, K, T, SPEC):
         assert np.median(d) < EDGE_MEDIAN_TOL_PX
+    # twice the spacing, about half the points
+    sparse = detect_rings(grey, SPEC, edge_spacing_px=4.0)
+    ratio = sum(len(e.uv_px) for e in sparse.edges) / sum(len(e.uv_px) for e in obs.edges)
+    assert 0.35 < ratio < 0.65
 
 
 def _bad_target_photo(rings_mm, rng, occluder=False):
@@ -126,6 +130,11 @@ def test_wrong_radius_ratio():
 def test_bad_image_argument(bad):
     with pytest.raises(ValueError):
         detect_rings(bad, SPEC)
+
+
+def test_bad_spacing_argument():
+    with pytest.raises(ValueError, match="edge_spacing_px"):
+        detect_rings(np.zeros((10, 10), np.uint8), SPEC, edge_spacing_px=0.0)
 
 
 def test_pencil_ratio_and_edge_conics_exact():
