@@ -146,8 +146,11 @@ def _stage_cameras(frames: list[Frame], opts: ReconstructOptions, progress: Prog
 
         intr = read_opencv_intrinsics(opts.intrinsics)
     with progress.stage("cameras") as tick:
-        seq = calibrate_frames([(f.name, f.bgr, f.error) for f in frames], opts.spec, step_deg=opts.step_deg,
-                               intrinsics=intr, progress=tick)
+        try:
+            seq = calibrate_frames([(f.name, f.bgr, f.error) for f in frames], opts.spec, step_deg=opts.step_deg,
+                                   intrinsics=intr, progress=tick)
+        except UserError as exc:
+            raise UserError(f"{opts.input}: {exc}") from None
     seq = replace(seq, meta={**seq.meta, "stage_key": key})
     write_cameras(cam_path, seq)
     return seq

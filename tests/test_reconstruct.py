@@ -1,0 +1,144 @@
+"""End to end: `turntable reconstruct` on a small rendered sequence, as a user runs it.
+
+One 12-frame 640x480 scene with ground truth (camera, mesh) is rendered once per
+module; the checks read only what lands in OUT: the GLB (units, axes, colours,
+material), cameras.json against the true cameras, the Rerun recording, the
+stage cache on a re-run, and what bad input does to OUT.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+
+import numpy as np
+import pytest
+import trimesh
+
+from calib.camera import camera_centre_table
+from rrd_util import rrd_rows
+from turntable.cameras_io import read_cameras
+from turntable.cli import main
+from turntable.synth import SynthOptions, make_sequence
+
+FOCAL_REL_TOL = 0.005  # 0.5 % on a 640x480 sequence
+CENTRE_TOL_MM = 2.0  # camera centre at 450 mm
+CHAMFER_REL_TOL = 0.02  # of the bounding-box diagonal, 64^3 hull
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("scene")
+    opts = SynthOptions(object="vase", frames=12, step_deg=30.0, width=640, height=480, focal_px=760.0,
+                        elevation_deg=35.0, distance_mm=430.0, noise=1.5, jpeg=95, backdrop="dark", seed=3,
+                        supersample=2)
+    make_sequence(root / "seq", opts)
+    return root / "seq"
+
+
+@pytest.fixture(scope="module")
+def run(scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("out") / "scan"
+    code = main(["reconstruct", str(scene / "images"), "--r-outer", "80", "--r-inner", "50", "--stroke", "3",
+                 "--out", str(out), "--resolution", "64", "--max-faces", "20000", "--quiet",
+                 "--export-colmap", "--export-nerfstudio"])
+    return code, out
+
+
+def _glb_json(path) -> dict:
+    data = path.read_bytes()
+    magic, _, _ = struct.unpack("<4sII", data[:12])
+    assert magic == b"glTF"
+    n, kind = struct.unpack("<I4s", data[12:20])
+    assert kind == b"JSON"
+    return json.loads(data[20:20 + n])
+
+
+def _chamfer(a: np.ndarray, b: np.ndarray) -> float:
+    from scipy.spatial import cKDTree
+
+    return 0.5 * (cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
+
+
+def test_runs_and_writes_every_output(run):
+    code, out = run
+    assert code == 0
+    for name in ("model.glb", "model.ply", "model.obj", "cameras.json", "summary.json", "recording.rrd",
+                 "transforms.json", "colmap/images.txt"):
+        assert (out / name).is_file(), name
+    assert not list(out.glob(".*.tmp")) and not list(out.glob(".recording.*"))
+
+
+def test_cameras_match_ground_truth(run, scene):
+    _, out = run
+    seq, gt = read_cameras(out / "cameras.json"), read_cameras(scene / "cameras_gt.json")
+    assert abs(seq.intrinsics.focal_px / gt.intrinsics.focal_px - 1) < FOCAL_REL_TOL
+    assert len(seq.ok_frames()) == 12
+    for f, g in zip(seq.frames, gt.frames):
+        err = np.linalg.norm(camera_centre_table(f.T_cam_table) - camera_centre_table(g.T_cam_table))
+        assert err < CENTRE_TOL_MM, (f.image, err)
+
+
+def test_glb_is_vr_ready_and_matches_the_object(run, scene):
+    _, out = run
+    doc = _glb_json(out / "model.glb")
+    pbr = doc["materials"][0]["pbrMetallicRoughness"]
+    assert pbr["metallicFactor"] == 0
+    assert "COLOR_0" in doc["meshes"][0]["primitives"][0]["attributes"]
+    mesh = trimesh.load(out / "model.glb", force="mesh", skip_materials=True)
+    assert mesh.is_watertight
+    lo, hi = mesh.bounds
+    assert -0.002 < lo[1] < 0.005 and 0.05 < hi[1] < 0.2  # metres, +Y up, standing on the plane
+    assert np.abs(mesh.vertices[:, [0, 2]].mean(axis=0)).max() < 0.01  # centred on the table
+    gt = trimesh.load(scene / "object_gt.ply")
+    pts = mesh.sample(5000, seed=0) * 1000.0
+    gt_pts = gt.sample(5000, seed=0)
+    diag = np.linalg.norm(gt.bounds[1] - gt.bounds[0])
+    assert _chamfer(pts, gt_pts) < CHAMFER_REL_TOL * diag
+    colors = np.asarray(mesh.visual.vertex_colors)[:, :3]
+    assert colors.std() > 5  # textured object: colours vary
+
+
+def test_recording_has_every_frame_and_the_mesh(run):
+    _, out = run
+    rows = rrd_rows(out / "recording.rrd")
+    assert rows["/world/camera"]["Pinhole:image_from_camera"] == 12
+    assert rows["/world/camera/image"]["EncodedImage:blob"] == 12
+    assert rows["/world/mesh"]["Mesh3D:vertex_colors"] == 1
+    assert "/world/hull" in rows
+
+
+def test_rerun_reuses_finished_stages(run, scene, capsys):
+    _, out = run
+    stamp = (out / "model.glb").stat().st_mtime_ns
+    code = main(["reconstruct", str(scene / "images"), "--r-outer", "80", "--r-inner", "50", "--stroke", "3",
+                 "--out", str(out), "--resolution", "64", "--max-faces", "20000", "--no-fusion"])
+    assert code == 0
+    err = capsys.readouterr().err
+    assert "reusing cameras.json" in err and "silhouettes: reused" in err and "hull: reused" in err
+    assert (out / "model.glb").stat().st_mtime_ns != stamp  # the mesh stage did run again
+
+
+def test_out_is_a_file(tmp_path, scene, capsys):
+    f = tmp_path / "out"
+    f.write_text("x")
+    code = main(["reconstruct", str(scene / "images"), "--r-outer", "80", "--r-inner", "50", "--out", str(f)])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "is a file" in err and "Traceback" not in err
+
+
+def test_no_rings_anywhere_leaves_nothing_behind(tmp_path, capsys):
+    import cv2
+
+    src = tmp_path / "blank"
+    src.mkdir()
+    for i in range(4):
+        cv2.imwrite(str(src / f"f{i}.png"), np.full((240, 320, 3), 90 + i, np.uint8))
+    out = tmp_path / "scan"
+    code = main(["reconstruct", str(src), "--r-outer", "80", "--r-inner", "50", "--out", str(out), "--quiet"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert str(src) in err and "no ring" in err and "Traceback" not in err
+    assert not any(p.name.startswith("model") for p in out.iterdir()) if out.exists() else True
+    assert not (out / "recording.rrd").exists()
