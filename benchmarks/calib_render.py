@@ -12,17 +12,19 @@ draws its object (vase, chair, cup, figure), backdrop (dark, light, clutter),
 turntable angle, distance (the 80/50/3 mm target with its angle marks spans
 40-60 % of the image width, capped at 640 mm so the camera stays inside the
 renderer's 700 mm room wall: at f 3000 px the target then spans ~70 %), a
-small aim offset and roll, all seeded. Sensor model and JPEG 95 as
-``turntable synth`` (noise 2 DN, vignetting 0.15). Renders are cached on disk
-(``--cache``, default a folder in the system temp dir), so a second run only
-calibrates.
+small aim offset and roll, all seeded. Sensor model as ``turntable synth``
+(vignetting 0.15, noise ``--noise`` DN at mid-grey, default 2, Gaussian blur
+``--blur`` px, default 0), then JPEG 95. The noise-free renders are cached on
+disk (``--cache``, default a folder in the system temp dir; the first run
+renders 32 frames, ~3-4 min on 2 busy cores), so later runs, and runs with
+another ``--noise``/``--blur``, only add the sensor and calibrate (~10 s).
 
 Every frame runs ``calib.rings.detect_rings`` once and
 ``calib.calibrate.calibrate_view`` with each solver; errors against the ground
 truth: f % = |f - f_gt| / f_gt, normal deg = angle between the second columns
 of ``R_cam_table``, t % = |t - t_gt| / |t_gt|.
 
-Run: ``nice .venv/bin/python benchmarks/calib_render.py [--frames 2] [--cache DIR]``.
+Run: ``nice .venv/bin/python benchmarks/calib_render.py [--frames 2] [--noise 2] [--blur 0] [--cache DIR]``.
 """
 
 from __future__ import annotations
@@ -59,7 +61,7 @@ BACKDROPS = ("dark", "light", "clutter")
 MAX_DISTANCE_MM = 640.0     # the renderer's room wall is a cylinder of radius 700 mm
 TARGET_PX_PER_MM = 8.0      # disc-top raster: >= 2 texels per image pixel at every grid cell
 JPEG_QUALITY = 95
-RENDER_VERSION = "3"        # bump when the frame recipe changes (invalidates the cache)
+RENDER_VERSION = "4"        # bump when the frame recipe changes (invalidates the cache)
 
 # the bar (default solver)
 BAR_F_PCT, BAR_NORMAL_DEG, BAR_T_PCT, BAR_MEDIAN_F_PCT = 0.5, 0.1, 0.5, 0.2
@@ -93,6 +95,7 @@ class RenderedFrame:
     image_bgr: np.ndarray
     K: np.ndarray
     T_cam_table: np.ndarray
+    jpeg: np.ndarray  # (n,) uint8: the encoded file the image was decoded from
 
 
 def frame_plans(frames_per_cell: int, seed: int, elevations=ELEVATIONS_DEG, focals=FOCALS_PX) -> list[FramePlan]:
@@ -156,36 +159,43 @@ class Renderer:
             self._scenes[key] = (scene, float(np.asarray(mesh.vertices)[:, 1].max()))
         return self._scenes[key]
 
-    def frame(self, plan: FramePlan) -> RenderedFrame:
-        img_path = self.cache_dir / f"{plan.name}.jpg"
-        gt_path = self.cache_dir / f"{plan.name}.json"
-        if img_path.is_file() and gt_path.is_file():
-            gt = json.loads(gt_path.read_text())
-            img = cv2.imread(str(img_path), cv2.IMREAD_COLOR)
+    def _render(self, plan: FramePlan) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Noise-free sRGB render (H, W, 3) uint8, K and T_cam_table; cached as PNG + JSON."""
+        png, gt_path = self.cache_dir / f"{plan.name}.png", self.cache_dir / f"{plan.name}.json"
+        if png.is_file() and gt_path.is_file():
+            img = cv2.imread(str(png), cv2.IMREAD_COLOR)
             if img is not None:
-                return RenderedFrame(plan, img, np.array(gt["K"]), np.array(gt["T_cam_table"]))
+                gt = json.loads(gt_path.read_text())
+                return img[..., ::-1], np.array(gt["K"]), np.array(gt["T_cam_table"])
         from turntable.synth.render import render_view
-        from turntable.synth.sequence import SynthOptions, _sensor
 
         t0 = time.perf_counter()
         scene, height = self._scene(plan.object, plan.backdrop)
         K = Intrinsics.from_focal(plan.focal_px, *SIZE).K
         T, T_world_table = _pose(plan, height)
         rgb, _ = render_view(scene, K, T, SIZE, supersample=3, T_world_table=T_world_table)
-        opts = SynthOptions(object=plan.object, width=SIZE[0], height=SIZE[1], focal_px=plan.focal_px,
-                            elevation_deg=plan.elevation_deg, distance_mm=plan.distance_mm,
-                            backdrop=plan.backdrop, jpeg=JPEG_QUALITY, seed=plan.seed)
-        img = _sensor(rgb, opts, K, np.random.default_rng(plan.seed))[..., ::-1]
-        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
-        if not ok:
-            raise OSError(f"cannot encode {plan.name}")
-        tmp = img_path.with_suffix(".tmp")
-        buf.tofile(str(tmp))
-        tmp.replace(img_path)
+        tmp = png.with_suffix(".tmp.png")
+        if not cv2.imwrite(str(tmp), rgb[..., ::-1]):
+            raise OSError(f"cannot write {tmp}")
+        tmp.replace(png)
         gt_path.write_text(json.dumps({"K": K.tolist(), "T_cam_table": T.tolist()}))
         self.rendered += 1
         self.render_s += time.perf_counter() - t0
-        return RenderedFrame(plan, cv2.imdecode(buf, cv2.IMREAD_COLOR), K, T)
+        return rgb, K, T
+
+    def frame(self, plan: FramePlan, noise: float = 2.0, blur_px: float = 0.0) -> RenderedFrame:
+        """The photo: render, then ``turntable.synth``'s sensor (vignetting, blur, noise) and JPEG."""
+        from turntable.synth.sequence import SynthOptions, _sensor
+
+        rgb, K, T = self._render(plan)
+        opts = SynthOptions(object=plan.object, width=SIZE[0], height=SIZE[1], focal_px=plan.focal_px,
+                            elevation_deg=plan.elevation_deg, distance_mm=plan.distance_mm, noise=noise,
+                            blur_px=blur_px, backdrop=plan.backdrop, jpeg=JPEG_QUALITY, seed=plan.seed)
+        img = _sensor(rgb, opts, K, np.random.default_rng(plan.seed))[..., ::-1]
+        ok, jpeg = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        if not ok:
+            raise OSError(f"cannot encode {plan.name}")
+        return RenderedFrame(plan, cv2.imdecode(jpeg, cv2.IMREAD_COLOR), K, T, jpeg)
 
 
 def default_cache_dir() -> Path:
@@ -308,7 +318,8 @@ def print_tables(results: list[Result], solvers, plans: list[FramePlan]) -> None
     verdict = "MET" if d and not over and med <= BAR_MEDIAN_F_PCT else "NOT MET"
     print("\n|Δf|/σ_f: focal error in the solver's reported 1σ (refine only); a Gaussian error with the right σ "
           "gives a median of 0.67 and a p90 of 1.64.")
-    print(f"\nBar ({DEFAULT_SOLVER}): every frame f ≤ {BAR_F_PCT} %, normal ≤ {BAR_NORMAL_DEG}°, t ≤ {BAR_T_PCT} %; "
+    print(f"\nBar ({DEFAULT_SOLVER}): every frame f ≤ {BAR_F_PCT} %, normal ≤ {BAR_NORMAL_DEG}°, "
+          f"t ≤ {BAR_T_PCT} %; "
           f"median f ≤ {BAR_MEDIAN_F_PCT} % → **{verdict}** (median f {_fmt(med)} %, "
           f"{len(over)}/{len(d)} frames over the bar).")
     if over:
@@ -336,6 +347,8 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=2, help="frames per (elevation, focal) cell (default 2)")
     ap.add_argument("--seed", type=int, default=9, help="seed of the frame grid (default 9)")
     ap.add_argument("--cache", type=Path, default=default_cache_dir(), help="folder for cached renders")
+    ap.add_argument("--noise", type=float, default=2.0, help="sensor noise at mid-grey, 8-bit DN (default 2)")
+    ap.add_argument("--blur", type=float, default=0.0, help="Gaussian optical blur sigma, px (default 0)")
     ap.add_argument("--solvers", nargs="+", choices=SOLVERS, default=[DEFAULT_SOLVER, "pencil", "paper"])
     args = ap.parse_args()
     if args.frames < 1:
@@ -346,14 +359,15 @@ def main() -> int:
     renderer = Renderer(args.cache)
     results, t_calib = [], 0.0
     for plan in plans:
-        frame = renderer.frame(plan)
+        frame = renderer.frame(plan, noise=args.noise, blur_px=args.blur)
         t0 = time.perf_counter()
         results += evaluate(frame, args.solvers)
         t_calib += time.perf_counter() - t0
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"# Single-view calibration on rendered photos, {datetime.date.today()}, {platform.machine()} "
           f"{platform.processor() or platform.platform()}, {os.cpu_count()} CPUs, load {load:.1f}\n")
-    print(f"{len(plans)} frames {SIZE[0]}x{SIZE[1]}, JPEG {JPEG_QUALITY}, target {SPEC.r_outer_mm:g}/"
+    print(f"{len(plans)} frames {SIZE[0]}x{SIZE[1]}, JPEG {JPEG_QUALITY}, noise {args.noise:g} DN, "
+          f"blur {args.blur:g} px, target {SPEC.r_outer_mm:g}/"
           f"{SPEC.r_inner_mm:g}/{SPEC.stroke_mm:g} mm with angle marks, objects {', '.join(OBJECTS)}, backdrops "
           f"{', '.join(BACKDROPS)}, seed {args.seed}; {renderer.rendered} rendered now "
           f"({renderer.render_s:.0f} s), the rest from {args.cache}; detection + solvers {t_calib:.0f} s; "

@@ -3,11 +3,11 @@
 Frames: the first ``--frames`` (default 20) of a seeded, shuffled draw from the
 grid of ``benchmarks/calib_render.py`` (``turntable.synth`` renders: elevation
 20-60 deg, f 1000-3000 px, vase / chair / cup / figure, dark / light / clutter
-backdrops, JPEG 95), cached on disk like there. Each frame is JPEG-encoded
-once (quality 95) in memory; then decoding (``cv2.imdecode``, reported apart,
-not in the total), ``calib.rings.detect_rings`` and
-``calib.calibrate.calibrate_view`` (solver ``refine``, the default) are timed
-``--repeats`` times, with ``time.perf_counter`` (wall) and ``time.process_time`` (CPU of all this
+backdrops, noise 2 DN, JPEG 95 in memory; renders cached on disk like there).
+Per frame, decoding (``cv2.imdecode``, reported apart, not in the total),
+``calib.rings.detect_rings`` and ``calib.calibrate.calibrate_view`` (solver
+``refine``, the default) are timed ``--repeats`` times, with
+``time.perf_counter`` (wall) and ``time.process_time`` (CPU of all this
 process's threads). Per frame the fastest repeat is kept (the machine is
 shared: the minimum is the least disturbed run); the table gives the median
 and 90th percentile over frames, and the median over every run too.
@@ -81,7 +81,7 @@ def main() -> int:
     order = np.random.default_rng(args.seed).permutation(len(plans))
     plans = [plans[i] for i in order[: args.frames]]
     renderer = Renderer(args.cache)
-    jpegs = [cv2.imencode(".jpg", renderer.frame(p).image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])[1] for p in plans]
+    jpegs = [renderer.frame(p).jpeg for p in plans]
 
     detect_rings(cv2.imdecode(jpegs[0], cv2.IMREAD_COLOR), SPEC)  # warm-up: imports, OpenCV's first calls
     best, allruns, fails = {}, {}, []
@@ -111,7 +111,8 @@ def main() -> int:
           "| median CPU (all runs) |")
     print("|---|---|---|---|---|---|")
     for label, k in (("detection (detect_rings)", "detect"), ("solve (calibrate_view, refine)", "solve"),
-                     ("**total** (detection + solve)", "total"), ("JPEG decode (cv2.imdecode, not in total)", "decode")):
+                     ("**total** (detection + solve)", "total"),
+                     ("JPEG decode (cv2.imdecode, not in total)", "decode")):
         bw, bc = np.array(best[f"{k}_wall"]), np.array(best[f"{k}_cpu"])
         print(f"| {label} | {np.median(bw):.1f} | {np.percentile(bw, 90):.1f} | {np.median(bc):.1f} | "
               f"{np.median(allruns[f'{k}_wall']):.1f} | {np.median(allruns[f'{k}_cpu']):.1f} |")
