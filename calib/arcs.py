@@ -73,23 +73,29 @@ class ArcEllipse:
     coverage: float
 
 
+#: Grey level -> 255 ln((i + LOG_OFFSET) / LOG_OFFSET) / ln((255 + LOG_OFFSET) / LOG_OFFSET).
+LOG_OFFSET = 8.0
+_LOG_SCALE = 255.0 / np.log((255.0 + LOG_OFFSET) / LOG_OFFSET)
+_LOG_LUT = np.round(_LOG_SCALE * np.log((np.arange(256) + LOG_OFFSET) / LOG_OFFSET)).astype(np.uint8)
+
+
 def extract_arcs(grey: np.ndarray, *, min_length: int = 12, samples: int = 6,
-                 low_frac: float = 0.15, high_frac: float = 0.35, partner_px: float = 10.0) -> Arcs:
+                 low_ratio: float = 1.3, high_ratio: float = 1.8, partner_px: float = 10.0) -> Arcs:
     """Arcs of the Canny edges of ``grey`` (H, W) uint8.
 
-    Canny thresholds are ``low_frac`` / ``high_frac`` of the image's grey range
-    (1st to 99th percentile) times the Sobel gain of a blurred step, so dim or
-    low-contrast photos are handled like bright ones.
+    Edges are found on the logarithm of the grey level, where a change of
+    illumination (dim light, a bright window elsewhere, uneven light) is an
+    offset, so the Canny thresholds are brightness ratios across the edge:
+    ``high_ratio`` starts an edge, ``low_ratio`` continues it (black ink on
+    white paper is a ratio of 3 or more).
     """
     h, w = grey.shape
-    g = cv2.GaussianBlur(grey, (0, 0), 1.0)
-    hist = cv2.calcHist([g], [0], None, [256], [0, 256]).ravel()
-    cdf = np.cumsum(hist) / hist.sum()
-    contrast = max(float(np.searchsorted(cdf, 0.99) - np.searchsorted(cdf, 0.01)), 20.0)
+    g = cv2.GaussianBlur(cv2.LUT(grey, _LOG_LUT), (0, 0), 1.0)
     gx = cv2.Sobel(g, cv2.CV_16S, 1, 0, ksize=3)
     gy = cv2.Sobel(g, cv2.CV_16S, 0, 1, ksize=3)
     gain = 3.0  # Sobel 3x3 peak response per grey level of a sigma-1 blurred step
-    edges = cv2.Canny(gx, gy, low_frac * gain * contrast, high_frac * gain * contrast, L2gradient=True)
+    lo, hi = (gain * _LOG_SCALE * np.log(r) for r in (low_ratio, high_ratio))
+    edges = cv2.Canny(gx, gy, lo, hi, L2gradient=True)
     vs, us = np.nonzero(edges)
     gxe, gye = gx[vs, us], gy[vs, us]
     # gradient quadrant in angular order: 0 (+,+), 1 (-,+), 2 (-,-), 3 (+,-)

@@ -92,6 +92,18 @@ def test_detect_rings_grey_input_and_small_target():
     assert 0.35 < ratio < 0.65
 
 
+def test_dim_target_next_to_a_bright_highlight():
+    # a quarter exposure with a saturated window in the frame: edges are found on log grey levels
+    rng = np.random.default_rng(11)
+    K, T = _camera(40, 900, rng, size=(640, 480))
+    photo = render_target_photo(SPEC, K, T, (640, 480), rng=rng, backdrop="dark")
+    img = (photo.image.astype(np.float32) * 0.25).astype(np.uint8)
+    img[10:120, 10:160] = 255
+    obs = detect_rings(img, SPEC)
+    for d in _edge_errors(obs, K, T, SPEC):
+        assert np.median(d) < EDGE_MEDIAN_TOL_PX
+
+
 def _bad_target_photo(rings_mm, rng, occluder=False):
     K, T = _camera(50, 900, rng, size=(640, 480))
     return render_target_photo(SPEC, K, T, (640, 480), rng=rng, backdrop="dark", occluder=occluder,
