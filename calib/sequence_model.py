@@ -363,7 +363,7 @@ def _levenberg_marquardt(fun, jac, x0: np.ndarray, robust_px: float | None, bloc
         rel = (cost - c_new) / max(cost, 1e-300)
         x, r, cost = x + dx, r_new, c_new
         lam = max(lam / 10.0, 1e-9)
-        if rel < 1e-10:
+        if rel < 1e-9:
             break
     return x
 
