@@ -23,6 +23,7 @@ import datetime
 import math
 import os
 import platform
+import re
 import sys
 import tempfile
 import time
@@ -88,7 +89,7 @@ def main() -> int:
           "| yaw err ° med / max | centre err mm med / max | RMS px | time s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for name, opts, kw in scenes(args.frames, args.quick):
-        d = root / name.split(",")[0].replace(" ", "_").replace("-", "") / str(abs(hash(name)) % 10**6)
+        d = root / re.sub(r"[^a-z0-9]+", "_", name.lower()).strip("_")
         if not (d / "cameras_gt.json").is_file():
             make_sequence(d, SynthOptions(**opts), overwrite=True)
         opt = SynthOptions(**opts)
