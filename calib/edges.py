@@ -183,10 +183,11 @@ def find_stroke_edges(grey: np.ndarray, uv_px: np.ndarray, normals: np.ndarray,
     with np.errstate(invalid="ignore"):
         ok &= (c_in > 0) & (c_out > 0)
     if np.count_nonzero(ok) >= 8:
-        c_ref = np.median(np.minimum(c_in, c_out)[ok])
-        g_ref = np.median(np.minimum(g_in, g_out)[ok])
-        ok &= (np.minimum(c_in, c_out) > 0.45 * c_ref) & (np.maximum(c_in, c_out) < 2.2 * np.minimum(c_in, c_out))
-        ok &= (np.minimum(g_in, g_out) > 0.4 * g_ref) & (np.maximum(g_in, g_out) < 2.5 * np.minimum(g_in, g_out))
+        # contrasts relative to the local paper white: a shadow across the ring keeps them
+        white = np.maximum(np.maximum(white_in, white_out), 1.0)
+        c_rel, g_rel = np.minimum(c_in, c_out) / white, np.minimum(g_in, g_out) / white
+        ok &= (c_rel > 0.45 * np.median(c_rel[ok])) & (np.maximum(c_in, c_out) < 2.2 * np.minimum(c_in, c_out))
+        ok &= (g_rel > 0.4 * np.median(g_rel[ok])) & (np.maximum(g_in, g_out) < 2.5 * np.minimum(g_in, g_out))
     ok = _widen_rejections(ok, uv_px, gap_px)
     inner = np.where(ok[:, None], uv_px + f_in[:, None] * normals, np.nan)
     outer = np.where(ok[:, None], uv_px + f_out[:, None] * normals, np.nan)
