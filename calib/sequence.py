@@ -73,6 +73,10 @@ REREAD_MARKS = True
 POINT_BUDGET = 20_000
 #: distortion terms kept only when they lower the RMS edge residual by this fraction.
 MIN_RMS_GAIN = 0.03
+#: a frame whose RMS under the shared model exceeds this many times the median (and BAD_FRAME_MIN_PX)
+#: is dropped (a misdetection, or a camera that moved).
+BAD_FRAME_RATIO = 4.0
+BAD_FRAME_MIN_PX = 1.0
 #: |marks - step| beyond this (deg) is reported per frame.
 ANGLE_CHECK_DEG = 1.0
 #: turntable model accepted when its RMS is within this factor (+0.05 px) of the single-view fits'.
@@ -93,7 +97,8 @@ from .sequence_model import _Fit, _fit, _FrameEdges, _Problem, _project_rotation
 # --------------------------------------------------------------------------- initialisation
 def _init_turntable(Ts: list[np.ndarray], theta: np.ndarray, yaw_known: bool) -> tuple[np.ndarray, np.ndarray,
                                                                                           np.ndarray, float]:
-    """``R_cam_axis, t_cam_axis, d_xz`` from single-view poses and angles; and the camera-centre fit RMS (mm).
+    """``R_cam_axis, t_cam_axis, d_xz`` from single-view poses and angles; and the camera centres' median
+    distance (mm) from the fitted circle (robust to a few bad frames).
 
     With consistent yaws (marks) the camera centres in the table frame obey the
     linear model ``c_k = RotY(theta_k)^T C - d`` (C: camera centre in the axis frame).
@@ -110,8 +115,8 @@ def _init_turntable(Ts: list[np.ndarray], theta: np.ndarray, yaw_known: bool) ->
             b[3 * k:3 * k + 3] = camera_centre_table(T)
         sol, *_ = np.linalg.lstsq(A, b, rcond=None)
         C, d = sol[:3], sol[3:]
-        rms = float(np.sqrt(np.mean((A @ sol - b) ** 2) * 3))
-        return R_ca, -R_ca @ C, d, rms
+        per_frame = np.linalg.norm((A @ sol - b).reshape(-1, 3), axis=1)
+        return R_ca, -R_ca @ C, d, float(np.median(per_frame))
     from .camera import rotation_from_normal
 
     n = np.mean([T[:3, 1] for T in Ts], axis=0)
@@ -276,24 +281,25 @@ def _add_distortion(fit: _Fit, notes: dict) -> _Fit:
     return fit
 
 
-def _choose_mode(mode, singles, ok, angled, rms_pooled, fit_tt, centre_rms, distance):
-    """'turntable' or 'handheld', and why."""
+def _choose_mode(mode, singles, ok, angled, fit_tt, centre_off, distance):
+    """'turntable' or 'handheld', and why (medians over frames: a few bad frames do not decide)."""
     if mode != "auto":
         return mode, f"--mode {mode}"
     if len(ok) < 3:
         return "handheld", f"only {len(ok)} calibrated frame(s): no turntable model"
     if len(angled) < 3:
         return "handheld", "turntable angles unknown (angle marks unreadable, no step given)"
-    if np.isfinite(centre_rms) and centre_rms > MODE_CENTRE_TOL * distance:
+    if np.isfinite(centre_off) and centre_off > MODE_CENTRE_TOL * distance:
         return "handheld", (f"camera centres do not lie on one circle about an axis "
-                            f"(RMS {centre_rms:.1f} mm at {distance:.0f} mm)")
+                            f"(median {centre_off:.1f} mm off at {distance:.0f} mm)")
     if fit_tt is None:
         return "handheld", "turntable fit failed"
-    if fit_tt.rms_px > MODE_RMS_RATIO * rms_pooled + 0.05:
-        return "handheld", (f"turntable model RMS {fit_tt.rms_px:.3f} px vs single views' "
-                            f"{rms_pooled:.3f} px")
-    return "turntable", (f"fixed camera: turntable model RMS {fit_tt.rms_px:.3f} px vs single views' "
-                         f"{rms_pooled:.3f} px, camera centres on one circle (RMS {centre_rms:.2f} mm)")
+    single = float(np.median([singles[k].rms_px for k in angled]))
+    joint = float(np.median(fit_tt.rms_per_frame))
+    if joint > MODE_RMS_RATIO * single + 0.05:
+        return "handheld", f"turntable model's median frame RMS {joint:.3f} px vs single views' {single:.3f} px"
+    return "turntable", (f"fixed camera: turntable model's median frame RMS {joint:.3f} px vs single views' "
+                         f"{single:.3f} px, camera centres on one circle (median {centre_off:.2f} mm off)")
 
 
 # --------------------------------------------------------------------------- public entry point
@@ -390,12 +396,7 @@ def calibrate_sequence(
 
 def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, intr, mode, pp, distortion,
                             reader=None):
-    n = len(singles)
     W, H = size
-    have_step = step_deg is not None
-    angled = [k for k in ok if singles[k].yaw_ok or have_step]
-    rms_pooled = float(np.sqrt(np.mean([singles[k].rms_px ** 2 for k in ok])))
-    distance = float(np.median([np.linalg.norm(singles[k].T[:3, 3]) for k in ok]))
     if intr is not None:
         K0, base = intr.K.copy(), ()
     else:
@@ -405,28 +406,16 @@ def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, i
     free_stroke = any(singles[k].edges.has_stroke for k in ok)
     stroke0 = float(np.median([singles[k].stroke_mm for k in ok])) if free_stroke else 0.0
     state0 = _State(K=K0, dist=np.zeros(5), stroke=stroke0)
-    checks: list[dict] = []
-
-    fit_tt, centre_rms, theta_all = None, float("nan"), None
-    if mode == "turntable" and not angled:
-        raise CalibrationError("turntable mode needs the turntable angle of each frame: the angle marks "
-                               "could not be read in any frame and no step was given")
-    if mode == "turntable" or (mode == "auto" and len(angled) >= 3):
-        theta_all, free_theta, checks = _initial_angles(singles, angled, names, step_deg)
-        yaw_known = any(singles[k].yaw_ok for k in angled)
-        theta0 = np.array([theta_all[k] for k in angled])
-        try:
-            fit_tt, centre_rms = _fit_turntable(singles, angled, state0, theta0, free_theta, yaw_known, base,
-                                                free_stroke, rms_pooled)
-        except (np.linalg.LinAlgError, ValueError) as exc:
-            log.warning("turntable fit failed: %s", exc)
-    chosen, why = _choose_mode(mode, singles, ok, angled, rms_pooled, fit_tt, centre_rms, distance)
-    if chosen == "turntable":
-        if fit_tt is None:
-            raise CalibrationError("turntable model could not be fitted")
-        fit, used = fit_tt, angled
-    else:
-        fit, used = _fit_handheld(singles, ok, state0, base, free_stroke), ok
+    chosen, why, fit, used, checks, centre_rms, rms_pooled = _fit_model(singles, ok, names, step_deg, mode, state0,
+                                                                        base, free_stroke)
+    bad = _bad_frames(fit, used)
+    if bad and len(used) - len(bad) >= 2:
+        for k, msg in bad.items():
+            singles[k], reasons[k] = None, msg
+        ok = [k for k in ok if k not in bad]
+        chosen, _, fit, used, checks, centre_rms, rms_pooled = _fit_model(singles, ok, names, step_deg, chosen,
+                                                                          state0, base, free_stroke)
+        why += f"; {len(bad)} frame(s) did not fit the shared camera and were dropped"
 
     notes: dict[str, str] = {}
     extra: list[str] = []
@@ -453,6 +442,43 @@ def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, i
             _reread_yaw(fit, used, singles, reader)
     return _result(fit, chosen, why, singles, reasons, ok, used, names, size, intr, notes, checks,
                    rms_pooled, centre_rms)
+
+
+def _fit_model(singles, ok, names, step_deg, mode, state0, base, free_stroke):
+    """Fit the turntable model where possible, choose the mode, fit the handheld model if chosen."""
+    have_step = step_deg is not None
+    angled = [k for k in ok if singles[k].yaw_ok or have_step]
+    rms_pooled = float(np.sqrt(np.mean([singles[k].rms_px ** 2 for k in ok])))
+    distance = float(np.median([np.linalg.norm(singles[k].T[:3, 3]) for k in ok]))
+    fit_tt, centre_rms, checks = None, float("nan"), []
+    if mode == "turntable" and not angled:
+        raise CalibrationError("turntable mode needs the turntable angle of each frame: the angle marks "
+                               "could not be read in any frame and no step was given")
+    if mode == "turntable" or (mode == "auto" and len(angled) >= 3):
+        theta_all, free_theta, checks = _initial_angles(singles, angled, names, step_deg)
+        yaw_known = any(singles[k].yaw_ok for k in angled)
+        theta0 = np.array([theta_all[k] for k in angled])
+        try:
+            fit_tt, centre_rms = _fit_turntable(singles, angled, state0, theta0, free_theta, yaw_known, base,
+                                                free_stroke, rms_pooled)
+        except (np.linalg.LinAlgError, ValueError) as exc:
+            log.warning("turntable fit failed: %s", exc)
+    chosen, why = _choose_mode(mode, singles, ok, angled, fit_tt, centre_rms, distance)
+    if chosen == "turntable":
+        if fit_tt is None:
+            raise CalibrationError("turntable model could not be fitted")
+        return chosen, why, fit_tt, angled, checks, centre_rms, rms_pooled
+    fit = _fit_handheld(singles, ok, state0, base, free_stroke)
+    return chosen, why, fit, ok, checks, centre_rms, rms_pooled
+
+
+def _bad_frames(fit: _Fit, used: list[int]) -> dict[int, str]:
+    """Frames whose edge RMS under the shared model exceeds ``BAD_FRAME_RATIO`` x the median (and 1 px)."""
+    r = fit.rms_per_frame
+    med = float(np.median(r))
+    lim = max(BAD_FRAME_RATIO * med, BAD_FRAME_MIN_PX)
+    return {used[i]: f"does not fit the shared camera: RMS {r[i]:.2f} px (median {med:.2f} px)"
+            for i in np.flatnonzero(r > lim)}
 
 
 def _reread_marks(fit: _Fit, used: list[int], reader: AngleReader) -> _Fit:
@@ -567,7 +593,7 @@ def _result(fit: _Fit, mode, why, singles, reasons, ok, used, names, size, intr,
             "pattern_offset_from_axis_mm": [float(st.d_xz[0]), float(st.d_xz[1])],
             "camera_height_mm": float(C[1]),
             "camera_radius_mm": float(np.hypot(C[0], C[2])),
-            "camera_centres_fit_rms_mm": _num(centre_rms),
+            "camera_centres_off_circle_median_mm": _num(centre_rms),
         }
         p = fit.problem
         res = [math.degrees(p._mark_residual(i, Ts[i][:3, :3]) / p.mark_w[i])

@@ -319,3 +319,20 @@ def test_rendered_turntable_sequence_end_to_end():
     err = np.abs(cs._wrap(np.radians([fr.angle_deg for fr in seq.frames]) - theta))
     assert np.degrees(err).max() < 0.3
     assert np.max(centre_errors_mm(seq, Ts)) < 3.0
+
+
+def test_a_frame_that_does_not_fit_the_shared_camera_is_dropped(monkeypatch):
+    rng = np.random.default_rng(10)
+    K, theta, Ts = turntable_truth(rng, n=8, step=45.0)
+    obs = [synth_observation(K, np.zeros(5), T, rng, n_per_edge=300) for T in Ts]
+    # frame 3 was taken with a zoomed lens: its rings are 10 % larger about the image centre
+    c = K[:2, 2]
+    obs[3] = TargetObservation(edges=tuple(EdgePoints(c + 1.1 * (e.uv_px - c), e.ring_radius_mm, e.side)
+                                           for e in obs[3].edges), width=W, height=H)
+    single, lookup = perturbed_single_view(Ts, K, rng)
+    lookup.extend(range(len(obs)))
+    monkeypatch.setattr(cs, "_single_view", single)
+    seq = cs.calibrate_sequence(obs, None, SPEC, angle_reader=fake_reader(Ts, rng), distortion="none")
+    assert seq.frames[3].status.startswith("does not fit the shared camera")
+    assert sum(f.ok for f in seq.frames) == 7 and seq.mode == "turntable"
+    assert abs(seq.intrinsics.focal_px / K[0, 0] - 1) < 1e-3
