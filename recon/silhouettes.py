@@ -48,6 +48,7 @@ _MARGIN_MM = 5.0  # the object may overhang the target's outermost ink by this m
 _PLANE_PX_PER_MM = 2.5  # table-plate resolution
 _MIN_TAU = 6.0  # colour distance (0..255 units) below which a pixel agrees with a plate, at least
 _TRUST = 0.6  # a plate is trusted where this fraction of frames agrees with it
+_STRONG = 0.9  # ... and its explanations are hard constraints where this fraction does
 _WORK_PX = 360_000  # GrabCut runs on at most this many pixels (the region's box, downscaled)
 
 
@@ -180,6 +181,7 @@ class _Plate:
     lo: np.ndarray
     hi: np.ndarray
     trust: np.ndarray  # (h, w) bool
+    strong: np.ndarray  # (h, w) bool: background in nearly every frame
 
 
 class _Plates:
@@ -189,7 +191,7 @@ class _Plates:
         room = _median_frames(crops)
         lo, hi = _envelope(room)
         agree = np.mean([_range_dist(c, lo, hi) < tau for c in crops], axis=0)
-        self.room = _Plate(room, lo, hi, agree >= _TRUST)
+        self.room = _Plate(room, lo, hi, agree >= _TRUST, agree >= _STRONG)
         self.plane_radius = radius_mm + 40.0
         rect = np.stack([rectify_to_table(im, K, t, self.plane_radius, _PLANE_PX_PER_MM) for im, t in zip(images, T)])
         ones = np.ones(images.shape[1:3], np.uint8)
@@ -210,23 +212,33 @@ class _Plates:
         warp = [cv2.warpPerspective(p, M, (w, h), flags=cv2.INTER_LINEAR, borderValue=0)
                 for p in (self.table, self.table_lo, self.table_hi)]
         trust = cv2.warpPerspective(self.table_trust, M, (w, h), flags=cv2.INTER_NEAREST, borderValue=0) > 0
-        return _Plate(*warp, trust & _below_horizon(self.K, T, self.box, size_hw))
+        trust &= _below_horizon(self.K, T, self.box, size_hw)
+        return _Plate(*warp, trust, trust)
 
 
 def _initial_labels(img, region, room: _Plate, table: _Plate, tau):
     """GrabCut labels (h, w) uint8 from the plates, the pixels a plate explains as background, and
-    those a trusted plate contradicts."""
-    d = np.minimum(np.where(room.trust, _range_dist(img, room.lo, room.hi), np.inf),
-                   np.where(table.trust, _range_dist(img, table.lo, table.hi), np.inf))
-    s_room = np.where(room.trust, _shadow_dist(img, room.mid), np.inf)
+    those a trusted plate contradicts.
+
+    Where the table plate is trusted it alone decides: it shows the plane point
+    behind the pixel as other views saw it, so an object that covers the same
+    pixels in every frame (and makes the room plate look like itself) cannot
+    explain itself away there. The room plate decides elsewhere; its
+    explanations are only hard where it is background in nearly every frame.
+    """
+    d_room = np.where(room.trust & ~table.trust, _range_dist(img, room.lo, room.hi), np.inf)
+    d_tab = np.where(table.trust, _range_dist(img, table.lo, table.hi), np.inf)
+    d = np.minimum(d_room, d_tab)
+    s_room = np.where(room.trust & ~table.trust, _shadow_dist(img, room.mid), np.inf)
     s_tab = np.where(table.trust, _shadow_dist(img, table.mid), np.inf)
     shadow = np.minimum(s_room, s_tab) < tau
     explained = d < tau
     trusted = room.trust | table.trust
+    hard = (d_tab < tau) | ((d_room < tau) & room.strong)
     k3 = np.ones((3, 3), np.uint8)
     labels = np.full(img.shape[:2], cv2.GC_PR_FGD, np.uint8)
     labels[explained | shadow] = cv2.GC_PR_BGD
-    labels[cv2.erode(explained.astype(np.uint8), k3) > 0] = cv2.GC_BGD  # a plate explains the whole neighbourhood
+    labels[cv2.erode(hard.astype(np.uint8), k3) > 0] = cv2.GC_BGD  # a plate explains the whole neighbourhood
     labels[trusted & (d > 3.0 * tau) & ~shadow] = cv2.GC_FGD
     labels[~region] = cv2.GC_BGD
     return labels, explained, trusted & (d > tau) & ~shadow
@@ -326,6 +338,14 @@ def _plausibility(masks: np.ndarray, confirmed: np.ndarray) -> tuple[np.ndarray,
     return quality, tuple(status)
 
 
+def _noise_tau(samples: np.ndarray) -> float:
+    """Agreement threshold from pixels that are background for sure (V, N, 3): 1.5 x the 95th
+    percentile of their distance to the median, per frame, median over frames (a bad frame cannot
+    inflate it), at least ``_MIN_TAU``."""
+    far = _colour_dist(samples, _median_frames(samples))
+    return max(_MIN_TAU, 1.5 * float(np.median(np.percentile(far, 95, axis=1))))
+
+
 def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, spec: TargetSpec, *,
                          progress: Callable[[int, int], None] | None = None) -> SilhouetteResult:
     """Object silhouettes of a turntable sequence (fixed camera, table turning).
@@ -364,8 +384,7 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
     y0, y1, x0, x1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
     crops = imgs[:, y0:y1, x0:x1]
     outside = ~union
-    far = _colour_dist(imgs[:, outside][:, ::7], _median_frames(imgs[:, outside][:, ::7])) if outside.any() else None
-    tau = max(_MIN_TAU, 1.5 * float(np.percentile(far, 95))) if far is not None and far.size else _MIN_TAU
+    tau = _noise_tau(imgs[:, outside][:, ::7]) if outside.sum() >= 100 else _MIN_TAU
     plates = _Plates(crops, imgs, K, T, (y0, x0), radius, tau)
     confirmed = np.zeros(V)
     for i in range(V):
