@@ -347,6 +347,10 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=2, help="frames per (elevation, focal) cell (default 2)")
     ap.add_argument("--seed", type=int, default=9, help="seed of the frame grid (default 9)")
     ap.add_argument("--cache", type=Path, default=default_cache_dir(), help="folder for cached renders")
+    ap.add_argument("--elevations", type=float, nargs="+", default=list(ELEVATIONS_DEG), metavar="DEG",
+                    help="camera angles above the table plane (default 20 30 45 60)")
+    ap.add_argument("--focals", type=float, nargs="+", default=list(FOCALS_PX), metavar="PX",
+                    help="focal lengths (default 1000 1500 2000 3000)")
     ap.add_argument("--noise", type=float, default=2.0, help="sensor noise at mid-grey, 8-bit DN (default 2)")
     ap.add_argument("--blur", type=float, default=0.0, help="Gaussian optical blur sigma, px (default 0)")
     ap.add_argument("--solvers", nargs="+", choices=SOLVERS, default=[DEFAULT_SOLVER, "pencil", "paper"])
@@ -355,7 +359,7 @@ def main() -> int:
         ap.error("--frames must be >= 1")
 
     t_start = time.perf_counter()
-    plans = frame_plans(args.frames, args.seed)
+    plans = frame_plans(args.frames, args.seed, args.elevations, args.focals)
     renderer = Renderer(args.cache)
     results, t_calib = [], 0.0
     for plan in plans:
