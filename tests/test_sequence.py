@@ -299,11 +299,12 @@ def test_cli_bad_intrinsics_file(tmp_path, capsys):
 
 
 # --------------------------------------------------------------------------- end to end
-def test_rendered_turntable_sequence_end_to_end():
-    """Five small rendered photos (marks, occluder, JPEG): detection, marks and the joint fit together."""
+def test_rendered_turntable_sequence_end_to_end(tmp_path, capsys):
+    """Five small rendered photos (marks, occluder, JPEG) through the CLI: detection, marks, joint fit."""
+    import cv2
     from synthetic_images import render_target_photo
 
-    from turntable.sequence_stage import calibrate_frames
+    from turntable.cameras_io import read_cameras
 
     rng = np.random.default_rng(8)
     size, f = (800, 600), 950.0
@@ -311,14 +312,19 @@ def test_rendered_turntable_sequence_end_to_end():
     T_cam_world = look_at(camera_position(35.0, 0.0, 420.0), np.zeros(3))
     theta = np.radians([0.0, 47.0, 95.0, 141.0, 190.0])
     Ts = [T_cam_world @ make_T(cs.rot_y(th), np.zeros(3)) for th in theta]
-    frames = [(f"frame_{k}.jpg", render_target_photo(SPEC, K, T, size, rng=rng).image, "")
-              for k, T in enumerate(Ts)]
-    seq = calibrate_frames(frames, SPEC)
+    (tmp_path / "imgs").mkdir()
+    for k, T in enumerate(Ts):
+        cv2.imwrite(str(tmp_path / "imgs" / f"frame_{k}.png"), render_target_photo(SPEC, K, T, size, rng=rng).image)
+    rc = _cli([str(tmp_path / "imgs"), "--r-outer", "80", "--r-inner", "50", "--out", str(tmp_path / "cams.json")])
+    assert rc == 0, capsys.readouterr().err
+    assert "focal length" in capsys.readouterr().out
+    seq = read_cameras(tmp_path / "cams.json")
     assert seq.mode == "turntable" and all(fr.ok for fr in seq.frames)
     assert abs(seq.intrinsics.focal_px / f - 1) < 0.005
     err = np.abs(cs._wrap(np.radians([fr.angle_deg for fr in seq.frames]) - theta))
     assert np.degrees(err).max() < 0.3
     assert np.max(centre_errors_mm(seq, Ts)) < 3.0
+
 
 
 def test_a_frame_that_does_not_fit_the_shared_camera_is_dropped(monkeypatch):
