@@ -231,7 +231,7 @@ def _fit_ring(found, name: str):
 
 
 def detect_rings(image, spec: TargetSpec, *, principal_point_px=None,
-                 edge_spacing_px: float = 2.0) -> TargetObservation:
+                 edge_spacing_px: float = 2.0, gamma: float = 2.2) -> TargetObservation:
     """Find the two printed rings and return sub-pixel points on both edges of each.
 
     Parameters
@@ -247,6 +247,10 @@ def detect_rings(image, spec: TargetSpec, *, principal_point_px=None,
         Spacing of the returned edge points along each edge, pixels (one point
         per normal profile); larger values return fewer points (faster
         refinement), smaller ones more.
+    gamma : float
+        Encoding gamma of the grey levels (2.2: sRGB-like, as cameras and the
+        project's renderer write; 1.0: linear data). Edges are located in
+        linear light.
 
     Returns
     -------
@@ -267,6 +271,8 @@ def detect_rings(image, spec: TargetSpec, *, principal_point_px=None,
     grey = _grey(image)
     if not edge_spacing_px > 0:
         raise ValueError(f"edge_spacing_px must be positive, got {edge_spacing_px}")
+    if not 0.2 <= gamma <= 5.0:
+        raise ValueError(f"gamma must be between 0.2 and 5, got {gamma}")
     h, w = grey.shape
     f = max(1, int(round(max(h, w) / COARSE_SIZE_PX)))
     first_error = None
@@ -279,17 +285,17 @@ def detect_rings(image, spec: TargetSpec, *, principal_point_px=None,
             continue
         for Co, Ci in pairs:
             try:
-                return _fine(grey, Co, Ci, spec, edge_spacing_px)
+                return _fine(grey, Co, Ci, spec, edge_spacing_px, gamma)
             except CalibrationError as exc:
                 first_error = first_error or exc
     raise first_error
 
 
 def _fine(grey: np.ndarray, Co: np.ndarray, Ci: np.ndarray, spec: TargetSpec,
-          spacing_px: float = 2.0) -> TargetObservation:
+          spacing_px: float = 2.0, gamma: float = 2.2) -> TargetObservation:
     """Full-resolution edges of the pair of coarse ring conics ``Co``, ``Ci`` (module docstring, 4.)."""
     h, w = grey.shape
-    gf, origin = _fine_roi(grey, Co)
+    gf, origin = _fine_roi(grey, Co, gamma)
     radii = {"outer": spec.r_outer_mm, "inner": spec.r_inner_mm}
     coarse = {"outer": _shift(Co, origin), "inner": _shift(Ci, origin)}
     fits = {}
@@ -320,15 +326,21 @@ def _fine(grey: np.ndarray, Co: np.ndarray, Ci: np.ndarray, spec: TargetSpec,
     return TargetObservation(edges=tuple(edges), width=w, height=h, conics=out_conics)
 
 
-def _fine_roi(grey: np.ndarray, C_outer: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Float32 crop of ``grey`` around the outer ring (lightly smoothed) and its origin (u0, v0)."""
+def _fine_roi(grey: np.ndarray, C_outer: np.ndarray, gamma: float = 2.2) -> tuple[np.ndarray, np.ndarray]:
+    """Crop of ``grey`` around the outer ring in linear light (float32, lightly smoothed), and its origin (u0, v0).
+
+    Pixel area and optical blur average light linearly, so an edge is the 50 %
+    crossing of a blurred step in linear light, not in the gamma-encoded grey
+    levels (there a dark stroke looks thinner: 0.2-0.5 px per edge).
+    """
     h, w = grey.shape
     e = conic_to_ellipse(C_outer)
     pad = 0.15 * e.a + 10.0
     u0, v0 = (int(max(0, np.floor(e.center_px[i] - e.a - pad))) for i in (0, 1))
     u1 = int(min(w, np.ceil(e.center_px[0] + e.a + pad) + 1))
     v1 = int(min(h, np.ceil(e.center_px[1] + e.a + pad) + 1))
-    roi = grey[v0:v1, u0:u1].astype(np.float32)
+    lut = (255.0 * np.power(np.arange(256) / 255.0, gamma)).astype(np.float32)
+    roi = lut[grey[v0:v1, u0:u1]]
     return cv2.GaussianBlur(roi, (0, 0), 0.7), np.array([u0, v0], float)
 
 

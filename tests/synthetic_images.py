@@ -163,7 +163,7 @@ def render_target_photo(spec: TargetSpec, K, T_cam_table, size, *, rng: np.rando
                         noise_sigma: float = 2.0, jpeg_quality: int | None = 90,
                         gain_gradient: float = 0.3,
                         rings_mm=None, supersample: int = 2,
-                        max_hidden: float = 0.4) -> SyntheticPhoto:
+                        max_hidden: float = 0.4, gamma: float = 2.2) -> SyntheticPhoto:
     """Render a photo of the target seen by ``K``, ``T_cam_table``.
 
     Parameters
@@ -182,6 +182,9 @@ def render_target_photo(spec: TargetSpec, K, T_cam_table, size, *, rng: np.rando
     rings_mm : optional ``(x_mm, z_mm, radius_mm)`` rings drawn instead of the spec's
     supersample : S, rendering at S times the resolution before area-downsampling
     max_hidden : the occluder hides at most this fraction of either ring
+    gamma : encoding gamma; levels, backdrop and object colours are encoded values,
+        the optics (pixel area, blur, light fall-off) act in linear light, then
+        the image is encoded ``I = 255 (L / 255)^(1 / gamma)`` as cameras do
     """
     K = np.asarray(K, float)
     T = np.asarray(T_cam_table, float)
@@ -209,12 +212,13 @@ def render_target_photo(spec: TargetSpec, K, T_cam_table, size, *, rng: np.rando
     Ws, Hs = w * S, h * S
     paper_level = rng.uniform(215, 245)
     ink_level = rng.uniform(15, 40)
-    sheet_f = ink_level + (paper_level - ink_level) * (sheet.astype(np.float32) / 255.0)
+    lin = (lambda v: 255.0 * np.power(np.clip(v, 0, 255) / 255.0, gamma))  # noqa: E731  encoded -> linear
+    sheet_f = lin(ink_level) + (lin(paper_level) - lin(ink_level)) * (sheet.astype(np.float32) / 255.0)
     warped = cv2.warpPerspective(sheet_f, M, (Ws, Hs), flags=cv2.INTER_LINEAR,
                                  borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     alpha = cv2.warpPerspective(np.ones((n, n), np.float32), M, (Ws, Hs), flags=cv2.INTER_LINEAR,
                                 borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    back = cv2.resize(_backdrop(backdrop, h, w, rng), (Ws, Hs), interpolation=cv2.INTER_LINEAR)
+    back = lin(cv2.resize(_backdrop(backdrop, h, w, rng), (Ws, Hs), interpolation=cv2.INTER_LINEAR))
     img = back * (1.0 - alpha[..., None]) + warped[..., None] * alpha[..., None]
     occ = np.zeros((Hs, Ws), np.uint8)
     if occluder:
@@ -223,7 +227,7 @@ def render_target_photo(spec: TargetSpec, K, T_cam_table, size, *, rng: np.rando
         col = rng.uniform(20, 230, 3).astype(np.float32)
         u0, u1 = poly[:, 0].min(), poly[:, 0].max()
         shade = 0.55 + 0.45 * np.sin(np.clip((np.arange(Ws) - u0) / max(u1 - u0, 1.0), 0, 1) * np.pi)
-        obj = shade[None, :, None].astype(np.float32) * col[None, None, :]
+        obj = lin(shade[None, :, None].astype(np.float32) * col[None, None, :])
         a = (occ.astype(np.float32) / 255.0)[..., None]
         img = img * (1.0 - a) + obj * a
     img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
@@ -236,6 +240,7 @@ def render_target_photo(spec: TargetSpec, K, T_cam_table, size, *, rng: np.rando
         img = img * gain[..., None]
     if blur_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur_px)
+    img = 255.0 * np.power(np.clip(img, 0, 255) / 255.0, 1.0 / gamma)  # linear light -> encoded
     if noise_sigma > 0:
         img = img + rng.normal(0.0, noise_sigma, img.shape).astype(np.float32)
     out = np.clip(np.round(img), 0, 255).astype(np.uint8)

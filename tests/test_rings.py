@@ -81,13 +81,14 @@ def test_detect_rings_accuracy(elev_deg, focal_px, backdrop):
 def test_detect_rings_grey_input_and_small_target():
     rng = np.random.default_rng(7)
     K, T = _camera(35, 1200, rng, ring_frac=0.3)
-    photo = render_target_photo(SPEC, K, T, (W, H), rng=rng, backdrop="clutter")
+    # linear (gamma 1) data, told so
+    photo = render_target_photo(SPEC, K, T, (W, H), rng=rng, backdrop="clutter", gamma=1.0)
     grey = cv2.cvtColor(photo.image, cv2.COLOR_BGR2GRAY)
-    obs = detect_rings(grey, SPEC)
+    obs = detect_rings(grey, SPEC, gamma=1.0)
     for d in _edge_errors(obs, K, T, SPEC):
         assert np.median(d) < EDGE_MEDIAN_TOL_PX
     # twice the spacing, about half the points
-    sparse = detect_rings(grey, SPEC, edge_spacing_px=4.0)
+    sparse = detect_rings(grey, SPEC, edge_spacing_px=4.0, gamma=1.0)
     ratio = sum(len(e.uv_px) for e in sparse.edges) / sum(len(e.uv_px) for e in obs.edges)
     assert 0.35 < ratio < 0.65
 
@@ -144,9 +145,11 @@ def test_bad_image_argument(bad):
         detect_rings(bad, SPEC)
 
 
-def test_bad_spacing_argument():
+def test_bad_spacing_or_gamma_argument():
     with pytest.raises(ValueError, match="edge_spacing_px"):
         detect_rings(np.zeros((10, 10), np.uint8), SPEC, edge_spacing_px=0.0)
+    with pytest.raises(ValueError, match="gamma"):
+        detect_rings(np.zeros((10, 10), np.uint8), SPEC, gamma=0.0)
 
 
 def test_pencil_ratio_and_edge_conics_exact():
