@@ -1,18 +1,22 @@
 """Edge arcs and the ellipses they make up (coarse search for the rings).
 
-Arcs: Canny edge pixels split by the quadrant of their gradient direction
-``(sign g_u, sign g_v)`` and linked into 8-connected components. A closed
-ellipse edge breaks into four arcs at its axis-aligned tangents; the two edges
-of a dark stroke have opposite gradients, so they never share an arc; an edge
-meeting another at a right angle (an occluder's outline) leaves the arc.
+Arcs: Canny edges of the log grey levels (illumination becomes an offset, so
+thresholds are brightness ratios), split by the quadrant of the gradient
+direction ``(sign g_u, sign g_v)`` and linked into 8-connected components. A
+closed ellipse edge breaks into four arcs at its axis-aligned tangents; the two
+edges of a dark stroke have opposite gradients, so they never share an arc
+(and each is the other's "partner"); an edge meeting another at a right angle
+(an occluder's outline) leaves the arc.
 
 Ellipses: RANSAC over arcs. Every arc carries its scatter matrix
 ``S = sum_k d_k d_k^T`` with ``d = (x^2, x y, y^2, x, y, 1)`` (normalised
 coordinates), so the direct least-squares ellipse fit (Fitzgibbon; Halir &
 Flusser) of any union of arcs is the fit of the sum of their matrices: all
-single-arc and arc-pair hypotheses are fitted in one batch. Each hypothesis is
+hypotheses (long single arcs, pairs of the longest arcs, chains of two or
+three arcs meeting end to end) are fitted in one batch. Each hypothesis is
 scored by the length of the arcs whose samples lie within a Sampson distance
-``tol`` of it; the best is refitted on its arcs, its arcs are removed, repeat.
+``tol`` of it (arcs without a partner count less); the best is refitted on its
+arcs, its arcs are removed, repeat.
 """
 
 from __future__ import annotations
