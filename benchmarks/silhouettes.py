@@ -34,7 +34,7 @@ def load_sequence(folder: Path):
     seq = read_cameras(folder / "cameras_gt.json")
     imgs, gts = [], []
     for f in seq.frames:
-        img = cv2.imread(str(folder / "images" / f.image), cv2.IMREAD_COLOR)
+        img = cv2.imread(str(folder / f.image), cv2.IMREAD_COLOR)
         imgs.append(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
         gts.append(cv2.imread(str(folder / "masks" / (Path(f.image).stem + ".png")), cv2.IMREAD_GRAYSCALE) > 127)
     T = np.stack([f.T_cam_table for f in seq.frames])

@@ -48,6 +48,7 @@ _MARGIN_MM = 5.0  # the object may overhang the target's outermost ink by this m
 _PLANE_PX_PER_MM = 2.5  # table-plate resolution
 _MIN_TAU = 6.0  # colour distance (0..255 units) below which a pixel agrees with a plate, at least
 _TRUST = 0.6  # a plate is trusted where this fraction of frames agrees with it
+_MIN_AREA = 0.02  # a silhouette smaller than this fraction of the cylinder's image is "empty"
 _STRONG = 0.9  # ... and its explanations are hard constraints where this fraction does
 _WORK_PX = 360_000  # GrabCut runs on at most this many pixels (the region's box, downscaled)
 
@@ -312,8 +313,13 @@ def _frame_mask(img, region, base, plates: _Plates, T, tau) -> tuple[np.ndarray,
     return mask, confirmed
 
 
-def _plausibility(masks: np.ndarray, confirmed: np.ndarray) -> tuple[np.ndarray, tuple[str, ...]]:
-    """Quality (V,) and status per frame from areas, borders and outline support."""
+def _plausibility(masks: np.ndarray, confirmed: np.ndarray, region_px: np.ndarray) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Quality (V,) and status per frame from areas, borders and outline support.
+
+    ``region_px`` (V,) is the area of the cylinder's image: a silhouette under
+    ``_MIN_AREA`` of it is taken for leftovers of the background (ring lines,
+    shadow edges), not an object.
+    """
     V, H, W = masks.shape
     area = masks.reshape(V, -1).sum(axis=1).astype(np.float64)
     quality = np.zeros(V)
@@ -325,8 +331,8 @@ def _plausibility(masks: np.ndarray, confirmed: np.ndarray) -> tuple[np.ndarray,
         m = masks[i]
         border = int(m[0].sum() + m[-1].sum() + m[:, 0].sum() + m[:, -1].sum())
         quality[i] = confirmed[i] * (min(ratio, 1.0 / ratio) if ratio > 0 else 0.0)
-        if area[i] < 1e-4 * H * W:
-            status.append("empty silhouette")
+        if area[i] < _MIN_AREA * region_px[i]:
+            status.append(f"empty silhouette ({int(area[i])} px)")
         elif border > 0.25 * (W + H):
             status.append(f"silhouette touches the image border along {border} px")
         elif not 0.67 <= ratio <= 1.5:
@@ -393,5 +399,5 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
                                                            T[i], tau)
         if progress is not None:
             progress(i + 1, V)
-    quality, status = _plausibility(masks, confirmed)
+    quality, status = _plausibility(masks, confirmed, np.array([r.sum() for r in regions], float))
     return SilhouetteResult(masks=masks, quality=quality, status=status)
