@@ -27,7 +27,7 @@ from itertools import combinations
 import cv2
 import numpy as np
 
-__all__ = ["Arcs", "ArcEllipse", "extract_arcs", "find_ellipses"]
+__all__ = ["Arcs", "ArcEllipse", "extract_arcs", "find_ellipses", "fit_scatter", "to_pixels", "sampson_batch"]
 
 
 @dataclass(frozen=True)
