@@ -1,8 +1,12 @@
 """Calibrating a whole sequence: shared intrinsics, and one turntable or one pose per frame.
 
-Two models, both fitted by maximum likelihood over every frame's ring edge points
-(residual: the Sampson distance, pixels, of each *undistorted* edge point from the
-projected edge circle of radius ``R + side * w / 2``, ``w`` the shared stroke width):
+Pipeline (:func:`calibrate_sequence`): every frame is calibrated on its own
+(``calib.calibrate.calibrate_view``) and its rotation about the table normal set
+by the angle marks (``calib.marks``); then one of two models is fitted by maximum
+likelihood over all frames' ring edge points (:mod:`calib.sequence_model`;
+residual: the distance in pixels of each *undistorted* edge point from its
+projected edge circle of radius ``R + side * w / 2``, ``w`` the shared stroke width,
+i.e. ``calib.refine.edge_residuals``):
 
 * **turntable** (fixed camera, the table turns)::
 
@@ -15,25 +19,34 @@ projected edge circle of radius ``R + side * w / 2``, ``w`` the shared stroke wi
   motorised table). The rings are symmetric about their centre, so they do not see
   ``theta_k`` (only weakly, through ``d``); the angle marks do. Each frame whose
   marks were read adds one residual: the rotation about the normal between the
-  model's pose and the marks-aligned single-view pose, divided by the reading's
-  standard deviation and multiplied by the edge noise (so both kinds are whitened
-  alike).
+  model's pose and the marks-aligned pose, divided by the reading's standard
+  deviation and multiplied by the edge noise (both kinds whitened alike). The
+  marks are read a second time through the fitted camera and poses, and refitted.
 * **handheld** (the camera moves): per-frame normal (2 dof: the rings do not see the
-  rotation about it, which the marks set) and centre (3).
+  rotation about it) and centre (3); the rotation about the normal comes from the
+  marks, read through the final camera.
 
-Intrinsics: ``f`` always (unless given), the principal point and radial distortion
+"auto" takes the turntable model when the single-view camera centres lie on one
+circle about an axis (median distance < 2 % of the camera distance) and its median
+frame RMS is within 1.3x (+0.05 px) of the single views'; frames that do not fit
+the shared camera (RMS > 4x the median and > 1 px) are dropped and the rest refitted.
+
+Intrinsics: ``f`` always (unless given); the principal point and radial distortion
 ``k1, k2`` (OpenCV's model, :mod:`calib.distortion`) when the views constrain them.
 With a fixed camera every frame sees the same table plane from the same direction,
 so every frame images the same circular points and the principal point is
 unobservable (the paper's single-view limitation, not lifted by turning the
 table): it stays at the image centre, and the result's ``meta`` says so. Otherwise
-(tilts differ) they are estimated, and refused -- kept at their defaults, ``meta``
+they are estimated and refused -- kept at their defaults, ``meta["not_estimated"]``
 says why -- when their standard deviation from the Jacobian (``cov = s^2 (J^T J)^-1``)
-exceeds :data:`MAX_STD`.
+exceeds :data:`MAX_STD`; ``k1`` then ``k2`` must moreover lower the RMS by
+:data:`MIN_RMS_GAIN` (else a few 1e-3 of spurious k1 absorb edge-detection bias
+and move f).
 
-Sign of the turntable angle: ``angle_deg`` in the result is the rotation of the
-table frame about +Y from the reference (first calibrated) frame, right-handed
-(``TURN_SIGN``); frames are compared with ground truth modulo one common offset.
+Angles: ``angle_deg`` is the rotation of the table frame about +Y, right-handed
+(``TURN_SIGN``; ``turntable synth``'s convention), 0 at the first frame whose
+marks were read (``k * step_deg`` with a step). The table frame of every pose is
+the printed one (+X at the 0 deg mark) when the marks were read.
 """
 
 from __future__ import annotations
