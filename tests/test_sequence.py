@@ -342,3 +342,17 @@ def test_a_frame_that_does_not_fit_the_shared_camera_is_dropped(monkeypatch):
     assert seq.frames[3].status.startswith("does not fit the shared camera")
     assert sum(f.ok for f in seq.frames) == 7 and seq.mode == "turntable"
     assert abs(seq.intrinsics.focal_px / K[0, 0] - 1) < 1e-3
+
+
+def test_stage_rejects_mixed_sizes_and_mismatched_intrinsics():
+    from turntable.errors import UserError
+    from turntable.sequence_stage import calibrate_frames
+
+    a, b = np.zeros((60, 80, 3), np.uint8), np.zeros((60, 90, 3), np.uint8)
+    with pytest.raises(UserError, match="different sizes"):
+        calibrate_frames([("a", a, ""), ("b", b, "")], SPEC)
+    intr = Intrinsics.from_focal(100.0, 640, 480)
+    with pytest.raises(UserError, match="640x480"):
+        calibrate_frames([("a", a, "")], SPEC, intrinsics=intr)
+    with pytest.raises(UserError, match="no frames"):
+        calibrate_frames([], SPEC)
