@@ -97,6 +97,10 @@ MODE_RMS_RATIO = 1.3
 #: turntable model considered when the camera centres fit one circle within this fraction of the distance.
 MODE_CENTRE_TOL = 0.02
 
+#: what one frame's single-view solve or mark reading may raise without stopping the sequence
+#: (a degenerate fit deep inside a solver surfaces as ValueError/LinAlgError).
+_FRAME_ERRORS = (CalibrationError, ValueError, np.linalg.LinAlgError)
+
 #: ``reader(frame_index, K, T_cam_table, dist) -> (T_cam_table_aligned, std_deg)``: the pose rotated
 #: about the table normal so that table +X points at the printed 0 deg mark; ``dist`` (OpenCV
 #: coefficients of the raw image, or None); raises CalibrationError.
@@ -208,12 +212,12 @@ def _per_frame(observations, spec, intr, pp, reader, failures, max_per_edge, pro
                     try:
                         T, std = reader(k, K, s.T, None)
                         s.T, s.yaw_ok, s.angle_std_deg = np.asarray(T, float), True, float(std)
-                    except CalibrationError as exc:
+                    except _FRAME_ERRORS as exc:
                         s.angle_error = str(exc)
                 else:
                     s.angle_error = "angle marks not read"
                 singles[k] = s
-            except CalibrationError as exc:
+            except _FRAME_ERRORS as exc:
                 reasons[k] = str(exc)
         if progress is not None:
             progress(k + 1, n)
@@ -508,7 +512,7 @@ def _reread_marks(fit: _Fit, used: list[int], reader: AngleReader) -> _Fit:
             continue
         try:
             T, std = reader(k, st.K, Ts[i], st.dist)
-        except CalibrationError:
+        except _FRAME_ERRORS:
             continue  # keep the first reading
         mark_R[i] = np.asarray(T, float)[:3, :3]
         w[i] = _mark_weights([std], fit.rms_px)[0]
@@ -529,7 +533,7 @@ def _reread_yaw(fit: _Fit, used: list[int], singles, reader: AngleReader) -> Non
             continue
         try:
             T, _ = reader(k, st.K, make_T(st.R[i], st.t[i]), st.dist)
-        except CalibrationError:
+        except _FRAME_ERRORS:
             continue
         st.R[i] = np.asarray(T, float)[:3, :3]
 

@@ -35,7 +35,7 @@ def detect_all(frames: Sequence[tuple[str, np.ndarray | None, str]], spec: Targe
         if img is not None and not error:
             try:
                 o = detect_rings(img, spec, principal_point_px=principal_point_px)
-            except CalibrationError as exc:
+            except (CalibrationError, ValueError) as exc:  # one bad frame does not stop the sequence
                 why = str(exc)
         elif not why:
             why = "image unreadable"
