@@ -210,10 +210,7 @@ def test_wrong_inner_radius_message_names_the_ratio(photos, capsys):
     assert "ratio" in err.lower()
 
 
-@pytest.mark.xfail(reason="calib.rings/solve_pencil accept a radius ratio 3 % off the nominal one; on rendered frames "
-                          "the measured ratio is within 0.05 %, and --r-inner 49 instead of 50 gives f ~25 % off",
-                   strict=False)
-@pytest.mark.parametrize("r_inner", ["49", "51"])
+@pytest.mark.parametrize("r_inner", ["49", "49.6", "50.4", "51"])
 def test_slightly_wrong_inner_radius_is_refused_not_silently_wrong(photos, capsys, r_inner):
     ph = photos["synth"]
     rc, out, err = _run(capsys, [ph.path, "--r-outer", "80", "--r-inner", r_inner, "--json"])
