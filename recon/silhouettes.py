@@ -49,7 +49,7 @@ _PLANE_PX_PER_MM = 2.5  # table-plate resolution
 _MIN_TAU = 6.0  # colour distance (0..255 units) below which a pixel agrees with a plate, at least
 _TRUST = 0.6  # a plate is trusted where this fraction of frames agrees with it
 _MIN_AREA = 0.02  # a silhouette smaller than this fraction of the cylinder's image is "empty"
-_STRONG = 0.9  # ... and its explanations are hard constraints where this fraction does
+_STRONG = 0.75  # ... and its explanations are hard constraints where this fraction does
 _WORK_PX = 360_000  # GrabCut runs on at most this many pixels (the region's box, downscaled)
 
 
@@ -235,14 +235,16 @@ def _initial_labels(img, region, room: _Plate, table: _Plate, tau):
     shadow = np.minimum(s_room, s_tab) < tau
     explained = d < tau
     trusted = room.trust | table.trust
-    hard = (d_tab < tau) | ((d_room < tau) & room.strong)
+    hard = (d_tab < tau) | (s_tab < tau) | ((d_room < tau) & room.strong)
     k3 = np.ones((3, 3), np.uint8)
     labels = np.full(img.shape[:2], cv2.GC_PR_FGD, np.uint8)
     labels[explained | shadow] = cv2.GC_PR_BGD
     labels[cv2.erode(hard.astype(np.uint8), k3) > 0] = cv2.GC_BGD  # a plate explains the whole neighbourhood
     labels[trusted & (d > 3.0 * tau) & ~shadow] = cv2.GC_FGD
     labels[~region] = cv2.GC_BGD
-    return labels, explained, trusted & (d > tau) & ~shadow
+    background = np.where(table.trust[..., None], table.mid, room.mid)
+    usable = table.trust | (room.trust & ~table.trust)
+    return labels, explained, trusted & (d > tau) & ~shadow, background, usable
 
 
 def _grabcut(img, labels, iterations: int = 2) -> np.ndarray:
@@ -280,6 +282,31 @@ def _refine_outline(prob, explained, disagrees, band_px: int) -> np.ndarray:
     return mask
 
 
+def _alpha_outline(img, mask, background, usable, tau) -> np.ndarray:
+    """Decide the outline pixels by their coverage: ``alpha = (I - B).(F - B) / |F - B|^2 >= 1/2``.
+
+    ``B`` is the plate's background colour, ``F`` the object's colour nearby
+    (mean of the mask pixels at least two pixels inside, within 7 x 7); used
+    where a plate is trusted and the two colours differ by more than ``3 tau``.
+    A blended edge pixel then goes to the side that covers most of it.
+    """
+    m8 = mask.astype(np.uint8)
+    k3 = np.ones((3, 3), np.uint8)
+    band = (cv2.dilate(m8, k3) > 0) & (cv2.erode(m8, k3) == 0)
+    inner = cv2.erode(m8, np.ones((5, 5), np.uint8)).astype(np.float32)
+    f_img = img.astype(np.float32)
+    weight = cv2.boxFilter(inner, -1, (7, 7), normalize=False)
+    F = cv2.boxFilter(f_img * inner[..., None], -1, (7, 7), normalize=False) / np.maximum(weight, 1e-6)[..., None]
+    B = background.astype(np.float32)
+    fb = F - B
+    den = (fb * fb).sum(-1)
+    ok = band & usable & (weight > 0.5) & (np.abs(fb).max(-1) > 3.0 * tau)
+    alpha = ((f_img - B) * fb).sum(-1) / np.maximum(den, 1e-6)
+    out = mask.copy()
+    out[ok] = alpha[ok] >= 0.5
+    return out
+
+
 def _clean(mask: np.ndarray, base: np.ndarray) -> np.ndarray:
     """Keep the largest component touching the base region (and any a tenth its size) and fill small holes."""
     n, lab, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
@@ -303,12 +330,15 @@ def _clean(mask: np.ndarray, base: np.ndarray) -> np.ndarray:
 def _frame_mask(img, region, base, plates: _Plates, T, tau) -> tuple[np.ndarray, float]:
     """Mask (h, w) bool of one frame inside the box, and the fraction of its outline a plate confirms."""
     h, w = img.shape[:2]
-    labels, explained, disagrees = _initial_labels(img, region, plates.room, plates.table_in_frame(T, (h, w)), tau)
+    labels, explained, disagrees, background, usable = _initial_labels(img, region, plates.room,
+                                                                       plates.table_in_frame(T, (h, w)), tau)
     prob = _grabcut(img, labels)
     scale = math.sqrt(h * w / _WORK_PX)
     mask = _refine_outline(prob, explained, disagrees, band_px=max(2, int(math.ceil(scale)) + 1)) & region
+    mask = _alpha_outline(img, mask, background, usable, tau) & region
     mask = _clean(mask, base)
-    outline = (cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0) & ~mask
+    m8 = mask.astype(np.uint8)  # the ring two pixels outside the outline (clear of blended pixels)
+    outline = (cv2.dilate(m8, np.ones((5, 5), np.uint8)) > 0) & (cv2.dilate(m8, np.ones((3, 3), np.uint8)) == 0)
     confirmed = float(explained[outline].mean()) if outline.any() else 0.0
     return mask, confirmed
 
