@@ -104,6 +104,8 @@ def test_recording_has_every_frame_and_the_mesh(run):
     rows = rrd_rows(out / "recording.rrd")
     assert rows["/world/camera"]["Pinhole:image_from_camera"] == 12
     assert rows["/world/camera/image"]["EncodedImage:blob"] == 12
+    assert rows["/world/camera/image/ellipses"]["LineStrips2D:strips"] == 12  # the detected rings
+    assert rows["/world/camera/image/silhouette"]["LineStrips2D:strips"] == 12
     assert rows["/world/mesh"]["Mesh3D:vertex_colors"] == 1
     assert "/world/hull" in rows
 

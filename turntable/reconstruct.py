@@ -118,7 +118,8 @@ def _frame_path(opts: ReconstructOptions, name: str) -> Path:
 
 # --------------------------------------------------------------------------- stages
 def _stage_cameras(frames: list[Frame], opts: ReconstructOptions, progress: Progress, key: str,
-                   out: Path) -> SequenceCalibration:
+                   out: Path, cache: StageCache) -> tuple[SequenceCalibration, dict]:
+    """The sequence calibration and the detected ring conics per frame name (for the recording)."""
     cam_path = out / "cameras.json"
     if opts.cameras is not None:
         seq = read_cameras(opts.cameras)
@@ -129,13 +130,14 @@ def _stage_cameras(frames: list[Frame], opts: ReconstructOptions, progress: Prog
         if missing:
             raise UserError(f"--cameras {opts.cameras}: no camera for frame(s) {', '.join(missing[:5])}")
         write_cameras(cam_path, seq)
-        return seq
+        return seq, {}
     if cam_path.is_file() and not opts.overwrite:
         try:
             seq = read_cameras(cam_path)
             if seq.meta.get("stage_key") == key:
                 progress.note("cameras: reusing cameras.json")
-                return seq
+                hit = cache.load("detections", key) or {}
+                return seq, _conics_from_arrays(hit)
         except UserError:
             pass
     from .sequence_stage import calibrate_frames
@@ -145,15 +147,25 @@ def _stage_cameras(frames: list[Frame], opts: ReconstructOptions, progress: Prog
         from .intrinsics_io import read_opencv_intrinsics
 
         intr = read_opencv_intrinsics(opts.intrinsics)
+    observations: list = []
     with progress.stage("cameras") as tick:
         try:
             seq = calibrate_frames([(f.name, f.bgr, f.error) for f in frames], opts.spec, step_deg=opts.step_deg,
-                                   intrinsics=intr, progress=tick)
+                                   intrinsics=intr, progress=tick, observations_out=observations)
         except UserError as exc:
             raise UserError(f"{opts.input}: {exc}") from None
     seq = replace(seq, meta={**seq.meta, "stage_key": key})
+    names = [f.name for f, o in zip(frames, observations) if o is not None]
+    conics = np.array([[o.conics["outer"], o.conics["inner"]] for o in observations if o is not None]).reshape(-1, 2, 3, 3)
+    cache.save("detections", key, names=np.array(names, dtype=str), conics=conics)
     write_cameras(cam_path, seq)
-    return seq
+    return seq, _conics_from_arrays({"names": np.array(names, dtype=str), "conics": conics})
+
+
+def _conics_from_arrays(d: dict) -> dict:
+    if "names" not in d:
+        return {}
+    return {str(n): {"outer": c[0], "inner": c[1]} for n, c in zip(d["names"], d["conics"])}
 
 
 def _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress):
@@ -212,7 +224,7 @@ def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, reco
 
     cam_key = stage_key(frame_key, opts.spec.__dict__, opts.step_deg,
                         str(opts.intrinsics) if opts.intrinsics else None)
-    seq = _stage_cameras(frames, opts, progress, cam_key, out)
+    seq, conics = _stage_cameras(frames, opts, progress, cam_key, out, cache)
     by_name = {fp.image: fp for fp in seq.frames}
     used: list[Frame] = []
     for f in good:
@@ -266,7 +278,7 @@ def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, reco
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1) + "\n")
     files["summary"] = out / "summary.json"
     if recorder is not None:
-        _record(recorder, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh)
+        _record(recorder, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh, conics)
     exit_code = 1 if any(f.bgr is None for f in frames) else 0
     return ReconstructResult(out=out, files=files, frames_used=names, frames_skipped=skipped,
                              summary=summary, exit_code=exit_code)
@@ -331,15 +343,13 @@ def _summary(seq, names, skipped, mesh, progress, fusion_note, files) -> dict:
     }
 
 
-def _record(rec, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh) -> None:
+def _record(rec, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh, conics) -> None:
     rec.log_target(opts.spec.r_outer_mm, opts.spec.r_inner_mm)
     W, H = seq.intrinsics.width, seq.intrinsics.height
     for i, n in enumerate(names):
-        small = images_rgb[i]
-        rec.log_camera(i, K, W, H, Ts[i], image_rgb=small)
-        conics = seq.meta.get("conics", {}).get(n) if isinstance(seq.meta.get("conics"), dict) else None
-        if conics:
-            rec.log_conics(i, {k: np.asarray(v) for k, v in conics.items()})
+        rec.log_camera(i, K, W, H, Ts[i], image_rgb=images_rgb[i])
+        if n in conics:
+            rec.log_conics(i, conics[n])
         rec.log_silhouette(i, masks[i])
     rec.log_mesh("hull", hull_mesh.vertices_table, hull_mesh.faces, hull_mesh.normals_table)
     if fused is not None and len(fused.pts_table):

@@ -49,7 +49,8 @@ def detect_all(frames: Sequence[tuple[str, np.ndarray | None, str]], spec: Targe
 def calibrate_frames(frames: Sequence[tuple[str, np.ndarray | None, str]], spec: TargetSpec, *,
                      step_deg: float | None = None, intrinsics: Intrinsics | None = None, mode: str = "auto",
                      principal_point_px=None, distortion: str = "auto",
-                     progress: Callable[[int, int], None] | None = None) -> SequenceCalibration:
+                     progress: Callable[[int, int], None] | None = None,
+                     observations_out: list | None = None) -> SequenceCalibration:
     """Detect the rings in every frame and calibrate the sequence.
 
     Parameters
@@ -60,6 +61,9 @@ def calibrate_frames(frames: Sequence[tuple[str, np.ndarray | None, str]], spec:
     step_deg, intrinsics, mode, principal_point_px, distortion
         See :func:`calib.sequence.calibrate_sequence`.
     progress : callable(done, total), optional
+    observations_out : list, optional
+        Receives each frame's ``TargetObservation`` (None where not detected),
+        for callers that show what was detected.
 
     Raises
     ------
@@ -84,6 +88,8 @@ def calibrate_frames(frames: Sequence[tuple[str, np.ndarray | None, str]], spec:
     tick2 = (lambda done, total: progress(n + done, 2 * n)) if progress is not None else None
     pp = intrinsics.principal_point_px if intrinsics is not None else principal_point_px
     obs, failures = detect_all(frames, spec, principal_point_px=pp, progress=tick)
+    if observations_out is not None:
+        observations_out.extend(obs)
     try:
         return calibrate_sequence(obs, [img for _, img, _ in frames], spec, names=[f[0] for f in frames],
                                   failures=failures, step_deg=step_deg, intrinsics=intrinsics, mode=mode,
