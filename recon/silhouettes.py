@@ -15,15 +15,18 @@ What calibration knows replaces a global threshold:
   into each frame. The object is static in neither: above the plane it moves
   in the rectified frames by parallax, and it turns in the image. A plate is
   trusted at a pixel where most frames agree with it.
-* **Per-frame evidence.** A pixel agreeing with a trusted plate (or with a
-  darker copy of it: a shadow) is probably background, one far from every
-  trusted plate is object; pixels no plate explains (the object covers them
-  in most frames) are left to the colour models.
+* **Per-frame evidence.** Where the table plate is trusted it alone decides
+  (an object covering the same pixels in most frames makes the room plate
+  look like itself, but not the plane behind it); the room plate decides
+  elsewhere. A pixel agreeing with a trusted plate (or with a darker copy of
+  it: a shadow) is background, one far from it is object; pixels no plate
+  explains are left to the colour models.
 * **Refinement.** GrabCut (colour GMMs + graph cut) starts from that labelling
-  on the cylinder's bounding box at reduced resolution; the result is brought
-  back to full resolution, where pixels near the outline that a plate explains
-  are decided by the plate. Then the components that touch the base region
-  are kept and small holes filled.
+  on the cylinder's bounding box at reduced resolution; back at full
+  resolution the outline pixels are decided by their coverage ``alpha`` between
+  the plate's colour and the object's colour nearby (``alpha >= 1/2``, the
+  ground truth's convention for blended pixels). Then the big components that
+  touch the base region are kept and small holes filled.
 
 Each frame is then checked for plausibility (empty, touching the image border
 along a long stretch, area jumping against its neighbours, mostly undecided)
@@ -62,8 +65,9 @@ class SilhouetteResult:
     masks : (V, H, W) bool
         True on the object.
     quality : (V,) float64
-        In [0, 1]: the fraction of the outline that a background plate
-        confirms, times an area-consistency factor; low values deserve a look.
+        In [0, 1]: the fraction of a ring two pixels outside the outline that
+        a background plate confirms, times an area-consistency factor
+        (``min(r, 1/r)``, ``r`` the area over its neighbours' median).
     status : tuple of str
         ``"ok"`` or why the frame's silhouette is implausible.
     """
