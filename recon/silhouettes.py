@@ -311,8 +311,15 @@ def _alpha_outline(img, mask, background, usable, tau) -> np.ndarray:
     return out
 
 
-def _clean(mask: np.ndarray, base: np.ndarray) -> np.ndarray:
-    """Keep the largest component touching the base region (and any a tenth its size) and fill small holes."""
+def _clean(mask: np.ndarray, base: np.ndarray, explained: np.ndarray) -> np.ndarray:
+    """Keep the largest component touching the base region (and any a tenth its size) and fill holes.
+
+    An enclosed hole is filled when it is small, or when no trusted plate says
+    it shows the background (``explained``, the per-pixel plate match, covers
+    less than half of it): a true opening (between a chair's legs, inside a
+    handle) shows the room or the table behind, which a plate explains, while a
+    patch of the object's texture that merely resembles the backdrop does not.
+    """
     n, lab, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     if n <= 1:
         return mask
@@ -323,10 +330,16 @@ def _clean(mask: np.ndarray, base: np.ndarray) -> np.ndarray:
     keep = [k for k in cand if stats[k, cv2.CC_STAT_AREA] >= 0.1 * big]
     out = np.isin(lab, keep)
     nh, hl, hs, _ = cv2.connectedComponentsWithStats((~out).astype(np.uint8), connectivity=4)
-    small = np.flatnonzero(hs[:, cv2.CC_STAT_AREA] < max(16, 0.002 * out.sum())) if nh > 1 else []
-    for h in small:
+    if nh <= 1:
+        return out
+    area = hs[:, cv2.CC_STAT_AREA]
+    explained_share = np.bincount(hl.ravel(), weights=explained.ravel().astype(float), minlength=nh) / np.maximum(area, 1)
+    small = area < max(16, 0.002 * out.sum())
+    H, W = out.shape
+    for h in range(1, nh):
         x, y, w, hh = hs[h, :4]
-        if x > 0 and y > 0 and x + w < out.shape[1] and y + hh < out.shape[0]:  # not the outside
+        enclosed = x > 0 and y > 0 and x + w < W and y + hh < H  # not the outside
+        if enclosed and (small[h] or explained_share[h] < 0.5):
             out[hl == h] = True
     return out
 
@@ -340,7 +353,7 @@ def _frame_mask(img, region, base, plates: _Plates, T, tau) -> tuple[np.ndarray,
     scale = math.sqrt(h * w / _WORK_PX)
     mask = _refine_outline(prob, explained, disagrees, band_px=max(2, int(math.ceil(scale)) + 1)) & region
     mask = _alpha_outline(img, mask, background, usable, tau) & region
-    mask = _clean(mask, base)
+    mask = _clean(mask, base, explained)
     m8 = mask.astype(np.uint8)  # the ring two pixels outside the outline (clear of blended pixels)
     outline = (cv2.dilate(m8, np.ones((5, 5), np.uint8)) > 0) & (cv2.dilate(m8, np.ones((3, 3), np.uint8)) == 0)
     confirmed = float(explained[outline].mean()) if outline.any() else 0.0

@@ -197,7 +197,7 @@ def _stage_hull(masks, K, Ts, opts, cache, key, progress):
     from recon.carving import carve_hull
 
     with progress.stage("carving") as tick:
-        hull = carve_hull(masks, K, Ts, radius_mm=opts.spec.r_outer_mm, resolution=opts.resolution,
+        hull = carve_hull(masks, K, Ts, radius_mm=opts.spec.extent_mm + 5.0, resolution=opts.resolution,
                           max_rejections=opts.max_rejections, progress=tick)
     cache.save("hull", key, values=hull.values, origin=hull.origin_table, voxel_mm=np.array(hull.voxel_mm))
     return hull
