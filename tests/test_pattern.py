@@ -137,3 +137,42 @@ def test_cli_writes_the_sheet_and_reports_user_errors(tmp_path, capsys):
     assert main(["pattern", str(tmp_path / "x.pdf"), "--paper", "huge"]) == 2
     assert main(["pattern", str(tmp_path / "x.png"), "--paper", "300x400", "--dpi", "20", "--no-marks"]) == 0
     assert Image.open(tmp_path / "x.png").size == (236, 315)
+
+
+def test_printed_png_photographed_calibrates_back_to_its_own_geometry(tmp_path):
+    """The sheet as printed, photographed at 40 deg: our detector, solver and mark
+    reader give back the camera that took the photo, the printed radii's ratio
+    and the printed 0 deg mark (the sheet's table frame)."""
+    import cv2
+
+    from calib.calibrate import calibrate_view
+    from calib.camera import camera_centre_table, plane_homography
+    from calib.marks import align_pose_to_marks
+    from calib.rings import detect_rings, pencil_ratio
+    from synthetic_images import look_at_T
+
+    dpi = 150.0
+    sheet = np.asarray(Image.open(write_pattern(tmp_path / "t.png", SPEC, paper="a4", dpi=dpi)).convert("L"))
+    px = dpi / 25.4
+    cx, cy = sheet_layout(SPEC, "a4").centre_mm
+    # sheet pixel (u, v) -> table (X, Z): pixel centres at (u + 0.5) / px mm from the sheet's corner
+    M_table_sheet = np.array([[1 / px, 0, 0.5 / px - cx], [0, 1 / px, 0.5 / px - cy], [0, 0, 1.0]])
+    W, H, f = 1280, 960, 1400.0
+    K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1.0]])
+    T_true = look_at_T(40.0, 30.0, 450.0)
+    S2 = np.array([[2.0, 0, 0.5], [0, 2.0, 0.5], [0, 0, 1]])  # 2x supersampling, pixel centres kept
+    big = cv2.warpPerspective(sheet, S2 @ plane_homography(K, T_true) @ M_table_sheet, (2 * W, 2 * H),
+                              flags=cv2.INTER_LINEAR, borderValue=90)
+    photo = cv2.resize(big, (W, H), interpolation=cv2.INTER_AREA)
+    photo = cv2.imdecode(cv2.imencode(".jpg", photo, [cv2.IMWRITE_JPEG_QUALITY, 95])[1], cv2.IMREAD_GRAYSCALE)
+
+    obs = detect_rings(photo, SPEC, gamma=1.0)  # the warp mixes grey levels linearly
+    _, ratio, _ = pencil_ratio(obs.conics["outer"], obs.conics["inner"])
+    assert abs(ratio / SPEC.radius_ratio - 1) < 1e-3
+    cal = calibrate_view(obs, SPEC)
+    assert abs(cal.intrinsics.focal_px / f - 1) < 0.003
+    reading = read_turntable_angle(photo, cal.intrinsics.K, cal.T_cam_table, SPEC)
+    T = align_pose_to_marks(cal.T_cam_table, reading.angle_deg)
+    assert np.linalg.norm(camera_centre_table(T) - camera_centre_table(T_true)) < 1.0  # mm at 450 mm
+    dR = T[:3, :3].T @ T_true[:3, :3]
+    assert np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))) < 0.1
