@@ -36,6 +36,8 @@ and flagged in ``status``; the caller leaves flagged frames out.
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable
 
@@ -440,11 +442,18 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
     tau = _noise_tau(imgs[:, outside][:, ::7]) if outside.sum() >= 100 else _MIN_TAU
     plates = _Plates(crops, imgs, K, T, (y0, x0), radius, tau)
     confirmed = np.zeros(V)
-    for i in range(V):
+
+    def one(i: int) -> int:
         base = cylinder_region(K, T[i], (W, H), radius, 0.0)[y0:y1, x0:x1]
         masks[i, y0:y1, x0:x1], confirmed[i] = _frame_mask(crops[i], regions[i][y0:y1, x0:x1], base, plates,
                                                            T[i], tau)
-        if progress is not None:
-            progress(i + 1, V)
+        return i
+
+    # Frames are independent and OpenCV (GrabCut, distance transforms, warps)
+    # releases the GIL: one thread per core. Each frame writes only its own rows.
+    with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, 8))) as pool:
+        for done, _ in enumerate(pool.map(one, range(V)), start=1):
+            if progress is not None:
+                progress(done, V)
     quality, status = _plausibility(masks, confirmed, np.array([r.sum() for r in regions], float))
     return SilhouetteResult(masks=masks, quality=quality, status=status)
