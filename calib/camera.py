@@ -12,6 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = [
+    "as_K",
+    "as_poses",
     "make_T",
     "invert_T",
     "rotation_from_normal",
@@ -22,6 +24,23 @@ __all__ = [
     "camera_centre_table",
     "angle_between_deg",
 ]
+
+
+def as_K(K) -> np.ndarray:
+    """``K`` as a (3, 3) float64 array; ``ValueError`` naming the shape otherwise."""
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3):
+        raise ValueError(f"K: expected (3, 3), got {K.shape}")
+    return K
+
+
+def as_poses(T_cam_table, n_views: int | None = None) -> np.ndarray:
+    """Per-view poses as a (V, 4, 4) float64 array (V = ``n_views`` when given)."""
+    T = np.asarray(T_cam_table, dtype=np.float64)
+    want = "V" if n_views is None else str(n_views)
+    if T.ndim != 3 or T.shape[1:] != (4, 4) or (n_views is not None and len(T) != n_views):
+        raise ValueError(f"T_cam_table: expected ({want}, 4, 4), got {T.shape}")
+    return T
 
 
 def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -147,33 +147,29 @@ def _check_K(K) -> np.ndarray:
     return K
 
 
+def _in_normalized(uv_px, K, dist, fn) -> np.ndarray:
+    """Apply ``fn`` (normalised coordinates, dist) to pixels ``uv_px`` and map back with the same ``K``."""
+    uv = _check_xy(uv_px)
+    d = pad_dist(dist)
+    if not np.any(d):
+        return uv.copy()
+    K = _check_K(K)
+    fx, fy, cx, cy, s = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
+    y = (uv[:, 1] - cy) / fy
+    x = (uv[:, 0] - cx - s * y) / fx
+    out = fn(np.column_stack([x, y]), d)
+    return np.column_stack([fx * out[:, 0] + s * out[:, 1] + cx, fy * out[:, 1] + cy])
+
+
 def undistort_px(uv_px, K, dist) -> np.ndarray:
     """Undistorted pixel positions (same ``K``) of distorted pixels ``uv_px`` (N, 2).
 
     Equivalent to ``cv2.undistortPoints(uv, K, dist, P=K)`` but iterated to
     convergence. Zero skew is not assumed.
     """
-    uv = _check_xy(uv_px)
-    d = pad_dist(dist)
-    if not np.any(d):
-        return uv.copy()
-    K = _check_K(K)
-    fx, fy, cx, cy, s = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
-    y = (uv[:, 1] - cy) / fy
-    x = (uv[:, 0] - cx - s * y) / fx
-    xu = undistort_normalized(np.column_stack([x, y]), d)
-    return np.column_stack([fx * xu[:, 0] + s * xu[:, 1] + cx, fy * xu[:, 1] + cy])
+    return _in_normalized(uv_px, K, dist, undistort_normalized)
 
 
 def distort_px(uv_px, K, dist) -> np.ndarray:
     """Distorted pixel positions of ideal pinhole pixels ``uv_px`` (N, 2) (same ``K``)."""
-    uv = _check_xy(uv_px)
-    d = pad_dist(dist)
-    if not np.any(d):
-        return uv.copy()
-    K = _check_K(K)
-    fx, fy, cx, cy, s = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
-    y = (uv[:, 1] - cy) / fy
-    x = (uv[:, 0] - cx - s * y) / fx
-    xd = distort_normalized(np.column_stack([x, y]), d)
-    return np.column_stack([fx * xd[:, 0] + s * xd[:, 1] + cx, fy * xd[:, 1] + cy])
+    return _in_normalized(uv_px, K, dist, distort_normalized)

@@ -39,6 +39,8 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from calib.camera import as_K, as_poses
+
 from .types import VoxelHull
 
 __all__ = ["carve_hull", "silhouette_sdf_px", "largest_visible_radius_mm", "largest_visible_height_mm"]
@@ -95,12 +97,7 @@ def _check_inputs(masks, K, T_cam_table, max_rejections):
     masks = np.asarray(masks)
     if masks.ndim != 3:
         raise ValueError(f"masks: expected (V, H, W), got {masks.shape}")
-    K = np.asarray(K, dtype=np.float64)
-    if K.shape != (3, 3):
-        raise ValueError(f"K: expected (3, 3), got {K.shape}")
-    T = np.asarray(T_cam_table, dtype=np.float64)
-    if T.shape != (masks.shape[0], 4, 4):
-        raise ValueError(f"T_cam_table: expected ({masks.shape[0]}, 4, 4), got {T.shape}")
+    K, T = as_K(K), as_poses(T_cam_table, masks.shape[0])
     k = int(max_rejections)
     if not 0 <= k < masks.shape[0]:
         raise ValueError(f"max_rejections must be in [0, {masks.shape[0] - 1}] for {masks.shape[0]} views, got {k}")

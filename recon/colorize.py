@@ -32,6 +32,8 @@ import numpy as np
 import scipy.sparse as sp
 import trimesh
 
+from calib.camera import as_K, as_poses
+
 from .types import TableMesh
 
 __all__ = ["color_vertices", "visible_vertices"]
@@ -86,7 +88,7 @@ def color_vertices(
         On inconsistent shapes or counts.
     """
     images, poses, masks_ = _check_views(images_rgb, T_cam_table, masks)
-    K = _check_K(K)
+    K = as_K(K)
     V = np.asarray(mesh.vertices_table, dtype=np.float64)
     F = np.asarray(mesh.faces, dtype=np.int64)
     normals = _normals(mesh)
@@ -130,7 +132,7 @@ def visible_vertices(
     T = np.asarray(T_cam_table, dtype=np.float64)
     if T.shape != (4, 4):
         raise ValueError(f"T_cam_table: expected (4, 4), got {T.shape}")
-    idx, _, _ = _view_samples(_scene(V, F), V, _normals(mesh), _check_K(K), T,
+    idx, _, _ = _view_samples(_scene(V, F), V, _normals(mesh), as_K(K), T,
                               tuple(image_size_hw), None, min_cos, tol)
     out = np.zeros(len(V), dtype=bool)
     out[idx] = True
@@ -139,9 +141,7 @@ def visible_vertices(
 
 def _check_views(images_rgb, T_cam_table, masks):
     images = [np.asarray(im) for im in images_rgb]
-    poses = np.asarray(T_cam_table, dtype=np.float64)
-    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
-        raise ValueError(f"T_cam_table: expected (V, 4, 4), got {poses.shape}")
+    poses = as_poses(T_cam_table)
     if len(images) != len(poses) or not images:
         raise ValueError(f"need one pose per image and at least one view: {len(images)} images, {len(poses)} poses")
     for k, im in enumerate(images):
@@ -155,13 +155,6 @@ def _check_views(images_rgb, T_cam_table, masks):
             if m.shape != im.shape[:2]:
                 raise ValueError(f"masks[{k}]: expected {im.shape[:2]}, got {m.shape}")
     return images, poses, masks
-
-
-def _check_K(K) -> np.ndarray:
-    K = np.asarray(K, dtype=np.float64)
-    if K.shape != (3, 3):
-        raise ValueError(f"K: expected (3, 3), got {K.shape}")
-    return K
 
 
 def _normals(mesh: TableMesh) -> np.ndarray:

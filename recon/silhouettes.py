@@ -44,7 +44,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from calib.camera import plane_homography, project_points
+from calib.camera import as_K, as_poses, plane_homography, project_points
 from calib.target import TargetSpec
 
 __all__ = ["SilhouetteResult", "estimate_silhouettes", "cylinder_region", "rectify_to_table"]
@@ -127,13 +127,7 @@ def _check_inputs(images_rgb, K, T_cam_table):
         raise ValueError(f"images_rgb: expected (V, H, W, 3), got {imgs.shape}")
     if imgs.dtype != np.uint8:
         raise ValueError(f"images_rgb: expected uint8, got {imgs.dtype}")
-    K = np.asarray(K, dtype=np.float64)
-    if K.shape != (3, 3):
-        raise ValueError(f"K: expected (3, 3), got {K.shape}")
-    T = np.asarray(T_cam_table, dtype=np.float64)
-    if T.shape != (imgs.shape[0], 4, 4):
-        raise ValueError(f"T_cam_table: expected ({imgs.shape[0]}, 4, 4), got {T.shape}")
-    return imgs, K, T
+    return imgs, as_K(K), as_poses(T_cam_table, imgs.shape[0])
 
 
 def _colour_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
