@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .camera import as_K
+
 __all__ = [
     "pad_dist",
     "distort_normalized",
@@ -140,20 +142,13 @@ def undistort_normalized(xy_d, dist, iterations: int = 20, tol: float = 1e-14) -
     return xy
 
 
-def _check_K(K) -> np.ndarray:
-    K = np.asarray(K, dtype=np.float64)
-    if K.shape != (3, 3):
-        raise ValueError(f"K: expected (3, 3), got {K.shape}")
-    return K
-
-
 def _in_normalized(uv_px, K, dist, fn) -> np.ndarray:
     """Apply ``fn`` (normalised coordinates, dist) to pixels ``uv_px`` and map back with the same ``K``."""
     uv = _check_xy(uv_px)
     d = pad_dist(dist)
     if not np.any(d):
         return uv.copy()
-    K = _check_K(K)
+    K = as_K(K)
     fx, fy, cx, cy, s = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
     y = (uv[:, 1] - cy) / fy
     x = (uv[:, 0] - cx - s * y) / fx
