@@ -51,7 +51,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser(_available())
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    # force: rebind to the current stderr on every call (tests, or a host program, may swap it)
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", force=True)
     try:
         return int(importlib.import_module(args._module).run(args) or 0)
     except UserError as exc:

@@ -49,9 +49,9 @@ def options_from_args(args) -> ReconstructOptions:
         max_rejections=args.max_rejections)
 
 
-def print_summary(res, stream=sys.stdout) -> None:
+def print_summary(res, stream=None) -> None:
     s = res.summary
-    w = stream.write
+    w = (stream or sys.stdout).write
     w(f"\nturntable reconstruct: {res.out}\n")
     w(f"  frames used     {s['frames_used']}\n")
     for name, why in res.frames_skipped.items():
