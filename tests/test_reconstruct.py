@@ -144,3 +144,18 @@ def test_no_rings_anywhere_leaves_nothing_behind(tmp_path, capsys):
     assert str(src) in err and "no ring" in err and "Traceback" not in err
     assert not any(p.name.startswith("model") for p in out.iterdir()) if out.exists() else True
     assert not (out / "recording.rrd").exists()
+
+
+@pytest.mark.parametrize("flag,value,reason", [
+    ("--masks", "no_such_dir", "not a folder"),
+    ("--cameras", "no_such.json", "file not found"),
+    ("--intrinsics", "no_such.yaml", "file not found"),
+])
+def test_bad_option_paths_fail_before_any_work(tmp_path, scene, capsys, flag, value, reason):
+    out = tmp_path / "scan"
+    code = main(["reconstruct", str(scene / "images"), "--r-outer", "80", "--r-inner", "50", "--out", str(out),
+                 flag, str(tmp_path / value), "--quiet"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert flag in err and reason in err and "Traceback" not in err
+    assert not out.exists()

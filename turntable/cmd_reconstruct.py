@@ -40,6 +40,12 @@ def options_from_args(args) -> ReconstructOptions:
         raise UserError(f"--resolution must be between 16 and 1024, got {args.resolution}")
     if args.max_faces < 100:
         raise UserError(f"--max-faces must be at least 100, got {args.max_faces}")
+    # fail before the long stages, not after them
+    if args.masks and not Path(args.masks).is_dir():
+        raise UserError(f"--masks {args.masks}: not a folder")
+    for flag, value in (("--cameras", args.cameras), ("--intrinsics", args.intrinsics)):
+        if value and not Path(value).is_file():
+            raise UserError(f"{flag} {value}: file not found")
     return ReconstructOptions(
         input=Path(args.input), out=Path(args.out), spec=target_from_args(args), step_deg=args.step_deg,
         masks_dir=Path(args.masks) if args.masks else None, cameras=Path(args.cameras) if args.cameras else None,
@@ -77,6 +83,7 @@ def run(args) -> int:
         raise UserError(f"--out {out}: exists and is a file, not a folder")
     from .recording import Recorder
 
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     tmp_rrd = out / f".recording.{os.getpid()}.rrd"
     t0 = time.perf_counter()
@@ -90,6 +97,8 @@ def run(args) -> int:
         tmp_rrd.replace(out / "recording.rrd")
     except BaseException:
         tmp_rrd.unlink(missing_ok=True)
+        if created and not any(out.iterdir()):  # nothing finished: leave no empty folder behind
+            out.rmdir()
         raise
     res.files["recording"] = out / "recording.rrd"
     res.summary["files"]["recording"] = str(out / "recording.rrd")
