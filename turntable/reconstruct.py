@@ -295,6 +295,8 @@ def _export(out, opts, seq, names, mesh, fused, progress) -> dict[str, Path]:
 
             write_points_ply(out / "points.ply", fused)
             files["points"] = out / "points.ply"
+        else:  # a points.ply of an earlier run would not belong to this model
+            (out / "points.ply").unlink(missing_ok=True)
         T_by_name = {fp.image: fp.T_cam_table for fp in seq.frames}
         intr = seq.intrinsics  # the original photos: their distortion, not the undistorted copies'
         if opts.export_colmap:
