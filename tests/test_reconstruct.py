@@ -63,7 +63,7 @@ def _chamfer(a: np.ndarray, b: np.ndarray) -> float:
 def test_runs_and_writes_every_output(run):
     code, out = run
     assert code == 0
-    for name in ("model.glb", "model.ply", "model.obj", "cameras.json", "summary.json", "recording.rrd",
+    for name in ("model.glb", "model.ply", "model.obj", "cameras.json", "summary.json", "recording.rrd", "points.ply",
                  "transforms.json", "colmap/images.txt"):
         assert (out / name).is_file(), name
     assert not list(out.glob(".*.tmp")) and not list(out.glob(".recording.*"))
@@ -119,6 +119,7 @@ def test_rerun_reuses_finished_stages(run, scene, capsys):
     err = capsys.readouterr().err
     assert "reusing cameras.json" in err and "silhouettes: reused" in err and "hull: reused" in err
     assert (out / "model.glb").stat().st_mtime_ns != stamp  # the mesh stage did run again
+    assert not (out / "points.ply").exists()  # the first run's fused points do not belong to a hull model
 
 
 def test_out_is_a_file(tmp_path, scene, capsys):
