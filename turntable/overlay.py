@@ -52,7 +52,8 @@ def draw_calibration(image_bgr: np.ndarray, obs: TargetObservation | None, cal: 
         label = (f"{label}  f = {cal.intrinsics.focal_px:.1f} +/- {s.focal_px:.1f} px   "
                  f"rms {cal.rms_px:.2f} px   [{cal.solver}]").strip()
     if label:
-        scale = 0.6 * thick
-        cv2.putText(img, label, (12, int(30 * thick)), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 4 * thick, cv2.LINE_AA)
-        cv2.putText(img, label, (12, int(30 * thick)), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), thick, cv2.LINE_AA)
+        scale, org = 0.6 * thick, (12, int(30 * thick))
+        (w, h), base = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, scale, thick)
+        cv2.rectangle(img, (org[0] - 6, org[1] - h - 6), (org[0] + w + 6, org[1] + base + 6), (0, 0, 0), -1)
+        cv2.putText(img, label, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), thick, cv2.LINE_AA)
     return img
