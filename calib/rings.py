@@ -275,11 +275,13 @@ def detect_rings(image, spec: TargetSpec, *, principal_point_px=None,
         raise ValueError(f"gamma must be between 0.2 and 5, got {gamma}")
     h, w = grey.shape
     f = max(1, int(round(max(h, w) / COARSE_SIZE_PX)))
-    first_error = None
+    first_error, hint = None, ""
     for factor in dict.fromkeys((f, 1)):  # full resolution again for a target too small to see at f
         try:
             conics, support = _coarse_ellipses(grey, factor)
-            pairs = _candidate_pairs(_strokes(conics, support, spec), spec)
+            rings = _strokes(conics, support, spec)
+            hint = hint or _ratio_hint(rings, spec)
+            pairs = _candidate_pairs(rings, spec)
         except CalibrationError as exc:
             first_error = first_error or exc
             continue
@@ -288,7 +290,28 @@ def detect_rings(image, spec: TargetSpec, *, principal_point_px=None,
                 return _fine(grey, Co, Ci, spec, edge_spacing_px, gamma)
             except CalibrationError as exc:
                 first_error = first_error or exc
+    if hint and "ratio" not in str(first_error):
+        raise CalibrationError(f"{first_error} ({hint})")
     raise first_error
+
+
+def _ratio_hint(rings: list[tuple[np.ndarray, float]], spec: TargetSpec) -> str:
+    """A note for the error message: the radius ratios of the concentric stroke
+    pairs the image does show, when none is near the target's (wrong radii given)."""
+    top = sorted(rings, key=lambda r: -r[1])[:4]
+    ells = [conic_to_ellipse(C) for C, _ in top]
+    ratios = []
+    for i in range(len(top)):
+        for j in range(i + 1, len(top)):
+            big, small = (i, j) if ells[i].a * ells[i].b >= ells[j].a * ells[j].b else (j, i)
+            split, ratio, _ = pencil_ratio(top[big][0], top[small][0])
+            if np.sqrt(split) < COARSE_CONCENTRIC_TOL:
+                ratios.append(ratio)
+    if not ratios or min(abs(r / spec.radius_ratio - 1.0) for r in ratios) < 0.03:
+        return ""
+    seen = ", ".join(f"{r:.2f}" for r in sorted(set(np.round(ratios, 2))))
+    return (f"concentric rings in the image have radius ratios {seen}; --r-outer/--r-inner give "
+            f"{spec.radius_ratio:.2f}: check the radii printed on the sheet")
 
 
 def _fine(grey: np.ndarray, Co: np.ndarray, Ci: np.ndarray, spec: TargetSpec,
