@@ -107,11 +107,15 @@ def run(args) -> int:
     if res.exit_code:
         print("turntable reconstruct: some input files could not be read (listed above); "
               "the model was built from the others", file=sys.stderr)
-    if opts.spawn:
-        from .cmd_view import run as view
+    if opts.spawn:  # the viewer runs on its own; this command does not wait for it
+        import subprocess
 
-        class _A:
-            target = str(out)
+        from .cmd_view import viewer_command
 
-        view(_A())
+        try:
+            subprocess.Popen(viewer_command(out), start_new_session=True,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        except (UserError, OSError) as exc:
+            print(f"turntable reconstruct: --spawn: could not open the viewer ({exc}); "
+                  f"the recording is {out / 'recording.rrd'}", file=sys.stderr)
     return res.exit_code

@@ -28,18 +28,13 @@ __all__ = ["Recorder"]
 class Recorder:
     """Writes a ``.rrd`` file; use as a context manager so the footer gets written."""
 
-    def __init__(self, path: str | Path, *, spawn: bool = False, application_id: str = "turntable"):
+    def __init__(self, path: str | Path, *, application_id: str = "turntable"):
         import rerun as rr
 
         self._rr = rr
         self.path = Path(path)
         self.rec = rr.RecordingStream(application_id)
         self.rec.save(str(self.path))
-        if spawn:
-            try:
-                self.rec.spawn(connect=False)
-            except Exception:  # no viewer installed: the file is still written
-                pass
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
         self._send_blueprint()
 
