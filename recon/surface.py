@@ -25,6 +25,16 @@ surface is the zero level set (marching cubes). ``D`` is computed on every
 ``tsdf_step``-th voxel and interpolated trilinearly (concavities are mm-sized
 or larger; the fine detail comes from the hull).
 
+Where stereo is silent because no camera can look there, the hull would
+stand wrongly: from a camera 30 deg above the table no ray reaches the lower
+inside of a cup, so carving stops at a lid about 20 mm under its rim. A
+gravity prior fills that gap (``cavity_prior``): unobserved hull voxels
+below carved free space, down each column, are empty too, keeping a wall and
+a floor as thick as the wall at the cavity's top (see :func:`_unseen_cavity`).
+A solid top does not trigger it, because the voxels just behind an observed
+surface are observed (``n > 0``). Measured (36 views, 1280x960, 30 deg): cup
+fused/hull Chamfer 0.67 -> 0.28; vase and chair unchanged (no voxel filled).
+
 :func:`compare_to_hull` decides whether the fused mesh should replace the
 hull mesh: both are rendered into views and compared with the confident
 stereo depth there; see its docstring for the criterion.
@@ -86,7 +96,63 @@ def _agreeing(zbuf: np.ndarray, dm: DepthMap, stride: int, min_confidence: float
     return np.where((own > 0) & (np.abs(zbuf - own) <= agree_mm), zbuf, 0.0).astype(np.float32)
 
 
-def _tsdf(hull: VoxelHull, zbufs, K_sub, Ts, tau, hull_weight, delta, step, progress):
+def _unseen_cavity(h: np.ndarray, D: np.ndarray, C: np.ndarray, voxel_mm: float, min_area_mm2: float) -> np.ndarray:
+    """Unobserved hull voxels under carved free space: a cavity no camera could look into.
+
+    ``h`` hull values, ``D`` fused TSDF, ``C`` number of views that updated
+    each voxel, all on one grid whose axis 1 is table +Y (up). A voxel is
+    *free* where views carved it (``C > 0``, ``D < 0``) inside the hull and
+    *unseen* where no view updated it. Going down each column, an unseen
+    voxel under a free or already-filled voxel is a cavity voxel, as long as
+    its horizontal distance to the hull's outside and its height above the
+    hull's floor both exceed the wall thickness ``t`` (a low percentile of
+    that horizontal distance over the cavity's top, which reaches the
+    observed inner wall), so the cavity keeps a wall and a floor of that
+    thickness (a cup's floor is about as thick as its wall). Distances come
+    from Euclidean distance transforms of the hull's inside per horizontal
+    slice, not from the hull values, which are distances only near the
+    surface, nor in 3-D, where the hull's roof above the opening is near.
+    Solid tops stop the descent: under an observed surface the voxels within
+    ``tau`` behind it were updated (``C > 0``, ``D >= 0``). Cavities whose top
+    covers less than ``min_area_mm2`` (holes in the observed surface of a
+    solid object) are dropped. Returns a bool mask of the voxels to treat as
+    empty.
+    """
+    inside = h > 0
+    free = inside & (C > 0) & (D < 0)
+    unseen = inside & (C == 0)
+    seed = np.zeros_like(unseen)
+    seed[:, :-1, :] = unseen[:, :-1, :] & free[:, 1:, :]
+    E = np.zeros_like(unseen)
+    if not seed.any():
+        return E
+    lab, n = ndimage.label(seed, structure=np.ones((3, 3, 3), bool))
+    cols = np.zeros(n + 1, np.int64)
+    ii, jj, kk = np.nonzero(seed)
+    # footprint: distinct (x, z) columns per seed component
+    key = np.unique(np.stack([lab[ii, jj, kk], ii, kk], 1), axis=0)
+    np.add.at(cols, key[:, 0], 1)
+    big = cols * voxel_mm ** 2 >= min_area_mm2
+    big[0] = False
+    seed &= big[lab]
+    if not seed.any():
+        return E
+    # lateral distance to the hull's outside, slice by slice (the grid edge counts as outside)
+    lateral = np.stack([ndimage.distance_transform_edt(np.pad(inside[:, j, :], 1))[1:-1, 1:-1]
+                        for j in range(h.shape[1])], axis=1) * voxel_mm
+    t = float(np.percentile(lateral[seed], 2))
+    # height above the hull's floor in each column
+    j_idx = np.arange(h.shape[1])[None, :, None]
+    floor = np.where(inside, j_idx, h.shape[1]).min(axis=1, keepdims=True)
+    above = (j_idx - floor + 0.5) * voxel_mm
+    ok = unseen & (lateral > t) & (above > t)
+    for j in range(h.shape[1] - 2, -1, -1):
+        E[:, j, :] = ok[:, j, :] & (seed[:, j, :] | E[:, j + 1, :])
+    return E
+
+
+def _tsdf(hull: VoxelHull, zbufs, K_sub, Ts, tau, hull_weight, delta, step, progress, cavity_prior,
+          min_cavity_mm2):
     vals = np.asarray(hull.values, np.float32)
     coarse = vals[::step, ::step, ::step]
     idx = np.nonzero(coarse > -tau)
@@ -114,6 +180,11 @@ def _tsdf(hull: VoxelHull, zbufs, K_sub, Ts, tau, hull_weight, delta, step, prog
             progress(i + 1, len(Ts))
     D = np.clip(coarse, -tau, tau)
     D[idx] = (hull_weight * D[idx] + acc) / (hull_weight + cnt)
+    if cavity_prior:
+        C = np.zeros(coarse.shape, np.float32)
+        C[idx] = cnt
+        E = _unseen_cavity(coarse, D, C, step * float(hull.voxel_mm), min_cavity_mm2)
+        D[E] = -tau
     fine = np.nonzero(vals > -tau)
     if step > 1:
         Df = ndimage.map_coordinates(D, np.stack(fine).astype(np.float32) / step, order=1, mode="nearest")
@@ -128,7 +199,8 @@ def fused_surface(points: FusedPoints, hull: VoxelHull, K: np.ndarray, T_cam_tab
                   depths: Sequence[DepthMap] | None = None, *, size: tuple[int, int] | None = None,
                   trunc_mm: float | None = None, hull_weight: float = 0.1, delta_mm: float = 1.0,
                   tsdf_step: int | None = None, stride: int = 2, min_confidence: float = 0.2,
-                  agree_mm: float = 2.0, progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                  agree_mm: float = 2.0, cavity_prior: bool = True, min_cavity_mm2: float = 100.0,
+                  progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Mesh of the hull carved and refined by the fused stereo points.
 
     Parameters
@@ -160,6 +232,12 @@ def fused_surface(points: FusedPoints, hull: VoxelHull, K: np.ndarray, T_cam_tab
         makes its voxel about 1 mm (at least 1).
     stride : int
         Pixel step of the per-view z-buffers.
+    cavity_prior : bool
+        Treat unobserved hull voxels under carved free space as empty (a
+        cavity no camera could look into; see the module docstring).
+    min_cavity_mm2 : float
+        Smallest horizontal extent of such a cavity's top; smaller ones
+        (gaps in the observed surface of a solid object) are left alone.
 
     Returns
     -------
@@ -184,7 +262,8 @@ def fused_surface(points: FusedPoints, hull: VoxelHull, K: np.ndarray, T_cam_tab
     K_sub = np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(K, float)
     step = int(tsdf_step) if tsdf_step is not None else max(1, int(round(1.0 / float(hull.voxel_mm))))
     tau = float(trunc_mm) if trunc_mm is not None else max(2.0 * step * float(hull.voxel_mm), 1.5)
-    F = _tsdf(hull, zbufs, K_sub, Ts, tau, hull_weight, float(delta_mm), step, progress)
+    F = _tsdf(hull, zbufs, K_sub, Ts, tau, hull_weight, float(delta_mm), step, progress, bool(cavity_prior),
+              float(min_cavity_mm2))
     return hull_mesh(VoxelHull(values=F, origin_table=hull.origin_table, voxel_mm=hull.voxel_mm))
 
 

@@ -115,3 +115,61 @@ def test_rejects_mismatched_inputs():
     K = intrinsics()
     with pytest.raises(ValueError):
         fuse_depths([], [], K, np.stack([np.eye(4)]))
+
+
+# ------------------------------------------------------------ a pit too deep to see the floor of
+WELL_FLOOR_Y_MM = 20.0   # 80 x 60 x 80 box, 40 x 40 pit from its top (60 mm) down to here; walls 20 mm
+WELL_TOL_MM = 4.0        # 2 mm voxels; the floor kept as thick as the wall (20 mm), like the pit's
+
+
+def well_box():
+    """80 x 60 x 80 mm box with a 40 x 40 x 40 mm pit: from 30 deg elevation no ray reaches its floor."""
+    parts = [((-40, 0, -40), (40, 20, 40)), ((-40, 20, -40), (40, 60, -20)), ((-40, 20, 20), (40, 60, 40)),
+             ((-40, 20, -20), (-20, 60, 20)), ((20, 20, -20), (40, 60, 20))]
+    V, F, n = [], [], 0
+    for lo, hi in parts:
+        v, f = box_mesh(lo, hi)
+        V.append(v)
+        F.append(f + n)
+        n += len(v)
+    return np.concatenate(V), np.concatenate(F)
+
+
+@pytest.fixture(scope="module")
+def well_scene():
+    rng = np.random.default_rng(1)
+    K = intrinsics()
+    Ts = turntable_poses(24, 15.0, 260.0, 30.0, target_table=(0.0, 30.0, 0.0))
+    v, f = well_box()
+    imgs, _, masks = render(v, f, K, Ts, SIZE, noise_texture(rng, extent_mm=300))
+    hull = hull_from_masks(masks, K, Ts, (-50, -5, -50), (50, 70, 50), 2.0)
+    near, far = hull_depth_range(hull, K, Ts, SIZE, margin_mm=2.0)
+    dms = depth_maps(imgs, K, Ts, (near, far), masks=masks)
+    pts = fuse_depths(dms, imgs, K, Ts)
+    return dict(K=K, Ts=Ts, hull=hull, dms=dms, pts=pts)
+
+
+def _top_at(verts, x, z, r=4.0):
+    sel = (np.abs(verts[:, 0] - x) < r) & (np.abs(verts[:, 2] - z) < r)
+    return verts[sel, 1].max()
+
+
+def test_unseen_floor_of_a_deep_pit_is_emptied_down_to_a_wall_thick_floor(well_scene):
+    s = well_scene
+    hv, _ = hull_mesh(s["hull"])
+    assert _top_at(hv, 0, 0) > 58.0  # the hull roofs the pit over
+    # without the prior the pit is carved only as deep as rays reach: a lid well above the floor
+    fv0, _ = fused_surface(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"], cavity_prior=False)
+    assert _top_at(fv0, 0, 0) > WELL_FLOOR_Y_MM + 3 * WELL_TOL_MM
+    fv, _ = fused_surface(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"])
+    assert _top_at(fv, 0, 0) == pytest.approx(WELL_FLOOR_Y_MM, abs=WELL_TOL_MM)
+    # the walls keep their top: observed surface stops the descent
+    for x, z in ((30, 0), (-30, 0), (0, 30), (0, -30)):
+        assert _top_at(fv, x, z, r=3.0) == pytest.approx(60.0, abs=2.0)
+
+
+def test_cavity_prior_leaves_a_visible_dent_alone(dent_scene):
+    s = dent_scene
+    a, _ = fused_surface(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"], cavity_prior=False)
+    b, _ = fused_surface(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"])
+    assert len(a) == len(b) and np.abs(a - b).max() < 1e-6
