@@ -19,6 +19,7 @@ import trimesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run without installing
 
+from calib import camera
 from recon.colorize import color_vertices
 from recon.meshing import mesh_from_hull, mesh_stats
 from recon.types import VoxelHull
@@ -35,14 +36,7 @@ def vase_hull(n: int) -> tuple[VoxelHull, float]:
 
 
 def look_at(c, target=(0.0, 100.0, 0.0)):
-    z = np.asarray(target) - c
-    z /= np.linalg.norm(z)
-    y = -(np.array([0.0, 1.0, 0.0]) - z[1] * z)
-    y /= np.linalg.norm(y)
-    R = np.stack([np.cross(y, z), y, z])
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, -R @ c
-    return T
+    return camera.look_at(c, target)
 
 
 def render(mesh, face_rgb, K, T, W, H):

@@ -15,6 +15,7 @@ __all__ = [
     "as_K",
     "as_poses",
     "make_T",
+    "look_at",
     "invert_T",
     "rotation_from_normal",
     "plane_homography",
@@ -49,6 +50,25 @@ def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     T[:3, :3] = np.asarray(R, dtype=np.float64)
     T[:3, 3] = np.asarray(t, dtype=np.float64).ravel()
     return T
+
+
+def look_at(centre: np.ndarray, target: np.ndarray, roll_rad: float = 0.0) -> np.ndarray:
+    """``T_cam_frame`` (4, 4) of an OpenCV camera at ``centre`` looking at ``target``.
+
+    Both points in one frame (table or world, mm) whose +Y is up: image "up"
+    (-y) follows +Y as far as the view allows, then the camera is rolled by
+    ``roll_rad`` about its optical axis (clockwise in the image).
+    """
+    C = np.asarray(centre, dtype=np.float64)
+    z = np.asarray(target, dtype=np.float64) - C
+    z /= np.linalg.norm(z)
+    x = np.cross([0.0, -1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    c, s = np.cos(roll_rad), np.sin(roll_rad)
+    x, y = c * x + s * y, -s * x + c * y
+    R = np.stack([x, y, z])  # rows: camera axes in the frame's coordinates
+    return make_T(R, -R @ C)
 
 
 def invert_T(T: np.ndarray) -> np.ndarray:

@@ -52,3 +52,19 @@ def test_camera_centre_and_angle():
     np.testing.assert_allclose(camera_centre_table(T), [0, 0, -100.0])
     assert abs(angle_between_deg([1, 0, 0], [0, 1, 0]) - 90.0) < 1e-12
     assert angle_between_deg([1, 0, 0], [1, 1e-9, 0]) < 1e-6
+
+
+def test_look_at_centres_the_target_with_table_up_on_top():
+    from calib.camera import look_at
+
+    K = np.array([[1000.0, 0, 320], [0, 1000.0, 240], [0, 0, 1]])
+    T = look_at([300.0, 200.0, -100.0], [0.0, 30.0, 0.0])
+    np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(T[:3, :3]) > 0.999999
+    np.testing.assert_allclose(camera_centre_table(T), [300.0, 200.0, -100.0], atol=1e-9)
+    top, bottom = project_points(K, T, np.array([[0.0, 60.0, 0.0], [0.0, 0.0, 0.0]]))
+    np.testing.assert_allclose(project_points(K, T, np.array([[0.0, 30.0, 0.0]]))[0], [320, 240], atol=1e-9)
+    assert top[1] < bottom[1] and abs(top[0] - bottom[0]) < 1e-6  # +Y is straight up in the image
+    rolled = look_at([300.0, 200.0, -100.0], [0.0, 30.0, 0.0], roll_rad=np.pi / 2)
+    t2, b2 = project_points(K, rolled, np.array([[0.0, 60.0, 0.0], [0.0, 0.0, 0.0]]))
+    assert abs(t2[1] - b2[1]) < 1e-6  # a quarter roll turns the vertical sideways

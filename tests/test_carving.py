@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from calib.camera import look_at
 from recon.carving import carve_hull, silhouette_sdf_px
 from recon.types import VoxelHull
 
@@ -15,16 +16,7 @@ CENTRE_TABLE = np.array([4.0, 40.0, -3.0])
 RADIUS_MM = 35.0
 
 
-def _look_at(centre_table: np.ndarray, target_table: np.ndarray) -> np.ndarray:
-    """T_cam_table of an OpenCV camera at ``centre_table`` looking at ``target_table``, table +Y up in the image."""
-    z = target_table - centre_table
-    z /= np.linalg.norm(z)
-    y = -(np.array([0.0, 1.0, 0.0]) - z[1] * z)
-    y /= np.linalg.norm(y)
-    R = np.stack([np.cross(y, z), y, z])
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, -R @ centre_table
-    return T
+_look_at = look_at
 
 
 def _turntable_cameras(n_views: int, distance_mm: float = 450.0, elevation_deg: float = 30.0) -> np.ndarray:

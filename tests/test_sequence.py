@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import calib.sequence as cs
-from calib.camera import camera_centre_table, circle_points_table, make_T, project_points
+from calib.camera import camera_centre_table, circle_points_table, look_at, make_T, project_points
 from calib.distortion import distort_px
 from calib.target import TargetSpec
 from calib.types import CalibrationError, EdgePoints, Intrinsics, TargetObservation
@@ -24,19 +24,6 @@ W, H = 1280, 960
 SPEC = TargetSpec(r_outer_mm=80.0, r_inner_mm=50.0, stroke_mm=3.0)
 CENTRE_TOL_MM = 0.5
 TRUE_STROKE_MM = 3.3  # printers spread ink: the truth differs from the nominal width
-
-
-def look_at(C: np.ndarray, target: np.ndarray, roll_rad: float = 0.0) -> np.ndarray:
-    """T_cam_world of an OpenCV camera at ``C`` looking at ``target`` (world +Y up)."""
-    z = (target - C) / np.linalg.norm(target - C)
-    x = np.cross(z, [0.0, 1.0, 0.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R_world_cam = np.column_stack([x, y, z])
-    c, s = math.cos(roll_rad), math.sin(roll_rad)
-    R_world_cam = R_world_cam @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-    R = R_world_cam.T
-    return make_T(R, -R @ C)
 
 
 def camera_position(elev_deg: float, azim_deg: float, dist_mm: float) -> np.ndarray:

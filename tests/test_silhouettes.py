@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.camera import project_points
+from calib.camera import look_at, project_points
 from calib.target import TargetSpec
 from recon.silhouettes import SilhouetteResult, cylinder_region, estimate_silhouettes, rectify_to_table
 
@@ -32,14 +32,7 @@ def _rot_y(th: float) -> np.ndarray:
 
 def _camera_world(distance_mm=450.0, elevation_deg=30.0) -> np.ndarray:
     e = np.radians(elevation_deg)
-    c = distance_mm * np.array([np.cos(e), np.sin(e), 0.0])
-    z = (np.array([0.0, 30.0, 0.0]) - c) / np.linalg.norm(np.array([0.0, 30.0, 0.0]) - c)
-    y = -(np.array([0.0, 1.0, 0.0]) - z[1] * z)
-    y /= np.linalg.norm(y)
-    R = np.stack([np.cross(y, z), y, z])
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, -R @ c
-    return T
+    return look_at(distance_mm * np.array([np.cos(e), np.sin(e), 0.0]), (0.0, 30.0, 0.0))
 
 
 def _blocks(a: np.ndarray, b: np.ndarray, size: float, seed: int) -> np.ndarray:

@@ -7,6 +7,7 @@ import open3d as o3d
 import pytest
 from scipy import ndimage
 
+from calib.camera import look_at
 from recon.stereo import depth_maps, hull_depth_range, select_neighbours
 from recon.types import VoxelHull
 
@@ -15,17 +16,7 @@ FOCAL_PX = 400.0
 SIZE = (320, 240)
 
 
-def look_at_T(eye_table: np.ndarray, target_table: np.ndarray) -> np.ndarray:
-    """``T_cam_table`` of an OpenCV camera at ``eye_table`` looking at ``target_table`` (+Y up)."""
-    z = np.asarray(target_table, float) - eye_table
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 1.0, 0.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, -R @ eye_table
-    return T
+look_at_T = look_at  # T_cam_table of a camera at eye_table looking at target_table (+Y up)
 
 
 def turntable_poses(n_views: int, step_deg: float, dist_mm: float, elev_deg: float,

@@ -46,7 +46,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from calib.camera import invert_T, make_T
+from calib.camera import invert_T, look_at, make_T
 from calib.target import TargetSpec
 from calib.types import FramePose, Intrinsics, SequenceCalibration
 from turntable.cameras_io import write_cameras
@@ -144,24 +144,6 @@ def rot_y(theta_rad: float) -> np.ndarray:
     """4x4 rotation by ``theta_rad`` about +Y (right-handed)."""
     c, s = math.cos(theta_rad), math.sin(theta_rad)
     return make_T(np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]), np.zeros(3))
-
-
-def look_at(centre_world: np.ndarray, target_world: np.ndarray, roll_rad: float = 0.0) -> np.ndarray:
-    """``T_cam_world`` (4, 4) of a camera at ``centre_world`` looking at ``target_world``.
-
-    OpenCV axes; image "up" (-y) along world +Y as far as the view allows,
-    then rolled by ``roll_rad`` about the optical axis (clockwise in the image).
-    """
-    C = np.asarray(centre_world, float)
-    z = np.asarray(target_world, float) - C
-    z /= np.linalg.norm(z)
-    x = np.cross([0.0, -1.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    c, s = math.cos(roll_rad), math.sin(roll_rad)
-    x, y = c * x + s * y, -s * x + c * y
-    R = np.stack([x, y, z])  # rows: camera axes in world coordinates
-    return make_T(R, -R @ C)
 
 
 def camera_poses(opts: SynthOptions, object_height_mm: float, rng: np.random.Generator
