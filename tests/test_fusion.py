@@ -17,10 +17,12 @@ PIT_TOL_MM = 3.0        # fused surface at the dent's centre, 2 mm voxels
 POINT_ACC_MM = 1.5      # 90 % of fused points within this of the GT (320x240, f=400 px, ~250 mm)
 
 
-def dent_box():
-    """80 x 50 x 80 mm box with a 30 x 30 x 20 mm square pit in its top (union of boxes)."""
-    parts = [((-40, 0, -40), (40, 30, 40)), ((-40, 30, -40), (40, 50, -15)), ((-40, 30, 15), (40, 50, 40)),
-             ((-40, 30, -15), (-15, 50, 15)), ((15, 30, -15), (40, 50, 15))]
+def pit_box(height: float, floor_y: float, pit_half: float, half: float = 40.0):
+    """(2 half) x height x (2 half) mm box with a square pit (2 pit_half wide) from its top down to floor_y."""
+    parts = [((-half, 0, -half), (half, floor_y, half)),
+             ((-half, floor_y, -half), (half, height, -pit_half)), ((-half, floor_y, pit_half), (half, height, half)),
+             ((-half, floor_y, -pit_half), (-pit_half, height, pit_half)),
+             ((pit_half, floor_y, -pit_half), (half, height, pit_half))]
     V, F, n = [], [], 0
     for lo, hi in parts:
         v, f = box_mesh(lo, hi)
@@ -30,18 +32,28 @@ def dent_box():
     return np.concatenate(V), np.concatenate(F)
 
 
-@pytest.fixture(scope="module")
-def dent_scene():
-    rng = np.random.default_rng(0)
+def dent_box():
+    """80 x 50 x 80 mm box with a 30 x 30 x 20 mm square pit in its top (union of boxes)."""
+    return pit_box(50.0, 30.0, 15.0)
+
+
+def pit_scene(v, f, seed: int, dist_mm: float, elev_deg: float, target_y: float, hull_top: float) -> dict:
+    """24 turntable views of a textured mesh, its hull, depth maps and fused points."""
+    rng = np.random.default_rng(seed)
     K = intrinsics()
-    Ts = turntable_poses(24, 15.0, 250.0, 50.0, target_table=(0.0, 25.0, 0.0))
-    v, f = dent_box()
-    imgs, depth_gt, masks = render(v, f, K, Ts, SIZE, noise_texture(rng, extent_mm=300))
-    hull = hull_from_masks(masks, K, Ts, (-50, -5, -50), (50, 60, 50), 2.0)
+    Ts = turntable_poses(24, 15.0, dist_mm, elev_deg, target_table=(0.0, target_y, 0.0))
+    imgs, _, masks = render(v, f, K, Ts, SIZE, noise_texture(rng, extent_mm=300))
+    hull = hull_from_masks(masks, K, Ts, (-50, -5, -50), (50, hull_top, 50), 2.0)
     near, far = hull_depth_range(hull, K, Ts, SIZE, margin_mm=2.0)
     dms = depth_maps(imgs, K, Ts, (near, far), masks=masks)
     pts = fuse_depths(dms, imgs, K, Ts)
     return dict(K=K, Ts=Ts, v=v, f=f, imgs=imgs, hull=hull, dms=dms, pts=pts)
+
+
+@pytest.fixture(scope="module")
+def dent_scene():
+    v, f = dent_box()
+    return pit_scene(v, f, seed=0, dist_mm=250.0, elev_deg=50.0, target_y=25.0, hull_top=60.0)
 
 
 def _top_at_pit_centre(verts):
@@ -124,29 +136,13 @@ WELL_TOL_MM = 4.0        # 2 mm voxels; the floor kept as thick as the wall (20 
 
 def well_box():
     """80 x 60 x 80 mm box with a 40 x 40 x 40 mm pit: from 30 deg elevation no ray reaches its floor."""
-    parts = [((-40, 0, -40), (40, 20, 40)), ((-40, 20, -40), (40, 60, -20)), ((-40, 20, 20), (40, 60, 40)),
-             ((-40, 20, -20), (-20, 60, 20)), ((20, 20, -20), (40, 60, 20))]
-    V, F, n = [], [], 0
-    for lo, hi in parts:
-        v, f = box_mesh(lo, hi)
-        V.append(v)
-        F.append(f + n)
-        n += len(v)
-    return np.concatenate(V), np.concatenate(F)
+    return pit_box(60.0, WELL_FLOOR_Y_MM, 20.0)
 
 
 @pytest.fixture(scope="module")
 def well_scene():
-    rng = np.random.default_rng(1)
-    K = intrinsics()
-    Ts = turntable_poses(24, 15.0, 260.0, 30.0, target_table=(0.0, 30.0, 0.0))
     v, f = well_box()
-    imgs, _, masks = render(v, f, K, Ts, SIZE, noise_texture(rng, extent_mm=300))
-    hull = hull_from_masks(masks, K, Ts, (-50, -5, -50), (50, 70, 50), 2.0)
-    near, far = hull_depth_range(hull, K, Ts, SIZE, margin_mm=2.0)
-    dms = depth_maps(imgs, K, Ts, (near, far), masks=masks)
-    pts = fuse_depths(dms, imgs, K, Ts)
-    return dict(K=K, Ts=Ts, hull=hull, dms=dms, pts=pts)
+    return pit_scene(v, f, seed=1, dist_mm=260.0, elev_deg=30.0, target_y=30.0, hull_top=70.0)
 
 
 def _top_at(verts, x, z, r=4.0):
