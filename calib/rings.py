@@ -275,12 +275,12 @@ def detect_rings(image, spec: TargetSpec, *, principal_point_px=None,
         raise ValueError(f"gamma must be between 0.2 and 5, got {gamma}")
     h, w = grey.shape
     f = max(1, int(round(max(h, w) / COARSE_SIZE_PX)))
-    first_error, hint = None, ""
+    first_error, seen = None, []
     for factor in dict.fromkeys((f, 1)):  # full resolution again for a target too small to see at f
         try:
             conics, support = _coarse_ellipses(grey, factor)
             rings = _strokes(conics, support, spec)
-            hint = hint or _ratio_hint(rings, spec)
+            seen.append(rings)
             pairs = _candidate_pairs(rings, spec)
         except CalibrationError as exc:
             first_error = first_error or exc
@@ -290,6 +290,7 @@ def detect_rings(image, spec: TargetSpec, *, principal_point_px=None,
                 return _fine(grey, Co, Ci, spec, edge_spacing_px, gamma)
             except CalibrationError as exc:
                 first_error = first_error or exc
+    hint = next((h for h in (_ratio_hint(r, spec) for r in seen) if h), "")  # only when failing
     if hint and "ratio" not in str(first_error):
         raise CalibrationError(f"{first_error} ({hint})")
     raise first_error
