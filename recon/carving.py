@@ -43,7 +43,8 @@ from calib.camera import as_K, as_poses
 
 from .types import VoxelHull
 
-__all__ = ["carve_hull", "silhouette_sdf_px", "largest_visible_radius_mm", "largest_visible_height_mm"]
+__all__ = ["carve_hull", "silhouette_sdf_px", "largest_visible_radius_mm", "largest_visible_height_mm",
+           "largest_carvable_radius_mm"]
 
 _UNSEEN_PX = 1.0e6  # distance-map value that means "this view has no opinion"
 _BAND = 1.25 * math.sqrt(3.0) / 2.0  # refine when |D| < _BAND * cell edge (half diagonal + 25 %)
@@ -144,6 +145,29 @@ def largest_visible_height_mm(K, T_cam_table, width: int, height: int) -> float:
     return float(hs[below[0] - 1] if below.size and below[0] > 0 else (0.0 if below.size else hs[-1]))
 
 
+def largest_carvable_radius_mm(K, T_cam_table, width: int, height: int, height_mm: float) -> float:
+    """Radius (mm) of the largest cylinder on the table that carving can still decide.
+
+    Carving needs a point inside at least half of the views (see the module
+    docstring): this is the largest ``r`` for which every point of the
+    cylinder's wall is (sampled every 5 deg at ``Y = 0, h/4, h/2, 3h/4`` for
+    ``h = height_mm``; the top, where ``largest_visible_height_mm`` puts it, is
+    at that limit already on the axis). The working volume can grow up to
+    this radius, no further; 0 when the axis itself is not seen.
+    """
+    K, T = as_K(K), as_poses(T_cam_table)
+    th = np.linspace(0.0, 2.0 * np.pi, 72, endpoint=False)
+    ys = np.linspace(0.0, 0.75 * max(float(height_mm), 0.0), 4)
+    need = (len(T) + 1) // 2
+    best = 0.0
+    for r in np.linspace(0.0, 2.0 * np.linalg.norm(T[:, :3, 3], axis=1).max(), 513):
+        wall = np.array([[r * math.cos(a), y, r * math.sin(a)] for y in ys for a in th])
+        if (_visible(K, T, wall, width, height).sum(axis=0) < need).any():
+            break
+        best = float(r)
+    return best
+
+
 class _Region:
     """Carving region: a vertical cylinder on the table, or an axis-aligned box (table frame, mm)."""
 
@@ -160,6 +184,19 @@ class _Region:
             return np.minimum(d_lo, d_hi).min(axis=1)
         wall = np.float32(self.radius_mm) - np.hypot(pts[:, 0], pts[:, 2])
         return np.minimum(wall, np.minimum(d_lo[:, 1], d_hi[:, 1]))
+
+    def touching(self, pts: np.ndarray, tol_mm: float) -> tuple[int, int]:
+        """How many of ``pts`` (N, 3) lie within ``tol_mm`` of the side wall and of the top.
+
+        For a box region the side is its four vertical faces. The bottom
+        (the table, ``Y = lo``) is where an object stands: never counted.
+        """
+        if self.radius_mm is None:
+            side = np.minimum(pts[:, [0, 2]] - self.lo[[0, 2]], self.hi[[0, 2]] - pts[:, [0, 2]]).min(axis=1)
+        else:
+            side = self.radius_mm - np.hypot(pts[:, 0], pts[:, 2])
+        top = self.hi[1] - pts[:, 1]
+        return int(np.count_nonzero(side < tol_mm)), int(np.count_nonzero(top < tol_mm))
 
 
 def _make_region(bounds_table, radius_mm, height_mm, K, T, width, height) -> _Region:
@@ -306,7 +343,10 @@ def carve_hull(masks: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, *,
         around what the coarse carve keeps plus two voxels of margin, so the
         zero level set is closed (flat on the table plane ``Y = 0``).
         ``meta`` holds ``max_rejections``, ``views``, ``region_lo``/``region_hi``
-        (mm) and ``evaluated`` (voxel centres projected, a cost measure).
+        (mm), ``evaluated`` (voxel centres projected, a cost measure) and
+        ``touches_side``/``touches_top``: how many inside voxels lie within a
+        voxel of the region's side wall / top, i.e. where the silhouettes
+        would have let the hull go further (> 0: the region clipped it).
     """
     masks, K, T, k = _check_inputs(masks, K, T_cam_table, max_rejections)
     if int(resolution) < 4:
@@ -338,6 +378,9 @@ def carve_hull(masks: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, *,
             progress(2 + level, total)
     cap = np.float32(np.linalg.norm(region.hi - region.lo))
     origin = centre - 0.5 * (dims - 1) * voxel
+    # an inside voxel within a voxel of the region's boundary has a value below a voxel (D <= region)
+    inside = origin + np.argwhere((vals > 0) & (vals < voxel)) * voxel
+    side, top = region.touching(inside, voxel)
     meta = {"max_rejections": k, "views": V, "region_lo": region.lo.tolist(), "region_hi": region.hi.tolist(),
-            "evaluated": int(evaluated)}
+            "evaluated": int(evaluated), "touches_side": side, "touches_top": top}
     return VoxelHull(values=np.clip(vals, -cap, cap), origin_table=origin, voxel_mm=voxel, meta=meta)

@@ -152,3 +152,26 @@ def test_bad_arguments(scene):
         carve_hull(masks, K, T, bounds_table=[[0, 0, 0], [0, 1, 1]])
     with pytest.raises(ValueError, match="carve the whole region"):
         carve_hull(np.zeros_like(masks), K, T, radius_mm=80.0)
+
+
+def test_touches_report_where_the_region_clips_the_hull(scene):
+    T, masks = scene
+    free = carve_hull(masks, K, T, radius_mm=80.0, height_mm=120.0, resolution=32, max_rejections=0)
+    assert free.meta["touches_side"] == 0 and free.meta["touches_top"] == 0
+    narrow = carve_hull(masks, K, T, radius_mm=30.0, height_mm=120.0, resolution=32, max_rejections=0)
+    assert narrow.meta["touches_side"] > 0 and narrow.meta["touches_top"] == 0  # the sphere reaches r = 40 mm
+    low = carve_hull(masks, K, T, radius_mm=80.0, height_mm=60.0, resolution=32, max_rejections=0)
+    assert low.meta["touches_top"] > 0 and low.meta["touches_side"] == 0  # its top is at Y = 75 mm
+
+
+def test_carvable_radius_grows_with_the_view():
+    from recon.carving import largest_carvable_radius_mm, largest_visible_radius_mm
+
+    T = _turntable_cameras(12)
+    whole = largest_visible_radius_mm(K, T, W, H)
+    carvable = largest_carvable_radius_mm(K, T, W, H, 60.0)
+    # every view sees the circle whole up to `whole`; half of them see beyond it
+    assert 0 < whole < carvable
+    K_tele = K.copy()
+    K_tele[0, 0] = K_tele[1, 1] = 2.0 * F_PX
+    assert largest_carvable_radius_mm(K_tele, T, W, H, 60.0) < carvable  # a narrower view, a smaller volume
