@@ -160,3 +160,132 @@ def test_bad_option_paths_fail_before_any_work(tmp_path, scene, capsys, flag, va
     err = capsys.readouterr().err
     assert flag in err and reason in err and "Traceback" not in err
     assert not out.exists()
+
+
+# --------------------------------------------------------------------------- the working volume, loud failures
+def _max_radius_mm(mesh_path) -> float:
+    v = trimesh.load(mesh_path, force="mesh", skip_materials=True).vertices * 1000.0
+    return float(np.hypot(v[:, 0], v[:, 2]).max())
+
+
+def _known_cameras_args(scene, out, *extra) -> list[str]:
+    return ["reconstruct", str(scene / "images"), "--cameras", str(scene / "cameras_gt.json"),
+            "--masks", str(scene / "masks"), "--out", str(out), "--resolution", "64", "--max-faces", "20000",
+            "--no-fusion", "--quiet", *extra]
+
+
+@pytest.fixture(scope="module")
+def gt_radius_mm(scene) -> float:
+    v = trimesh.load(scene / "object_gt.ply").vertices
+    return float(np.hypot(v[:, 0], v[:, 2]).max())
+
+
+def test_object_wider_than_the_target_is_not_clipped(scene, tmp_path, gt_radius_mm):
+    # a target whose outermost ink (27 mm) + 5 mm is smaller than the vase (35 mm from the axis)
+    out = tmp_path / "scan"
+    code = main(_known_cameras_args(scene, out, "--r-outer", "10", "--r-inner", "6", "--stroke", "1"))
+    assert code == 0
+    vol = json.loads((out / "summary.json").read_text())["working_volume"]
+    assert vol["grown"] and vol["radius_mm"] > gt_radius_mm and not vol["clipped"], vol
+    # 64^3 hull of 12 views: a little larger than the object, never cut at the first guess (32 mm)
+    assert gt_radius_mm - 1.0 < _max_radius_mm(out / "model.ply") < gt_radius_mm + 6.0
+
+
+def test_radii_optional_with_cameras(scene, tmp_path, gt_radius_mm, capsys):
+    out = tmp_path / "scan"
+    code = main(_known_cameras_args(scene, out))
+    assert code == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert "every view sees" in s["working_volume"]["first_guess"] and not s["failed_checks"]
+    assert gt_radius_mm - 1.0 < _max_radius_mm(out / "model.ply") < gt_radius_mm + 6.0
+    assert "working volume  radius" in capsys.readouterr().out
+
+
+def test_radii_required_without_cameras(scene, tmp_path, capsys):
+    out = tmp_path / "scan"
+    code = main(["reconstruct", str(scene / "images"), "--out", str(out), "--quiet"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "--r-outer and --r-inner are required" in err and "--cameras" in err and "Traceback" not in err
+    assert not out.exists()
+    code = main(_known_cameras_args(scene, out, "--r-outer", "80"))
+    assert code == 2 and "both --r-outer and --r-inner" in capsys.readouterr().err
+
+
+def test_volume_that_cannot_grow_is_reported_as_clipped(scene, tmp_path, monkeypatch, gt_radius_mm, capsys):
+    import recon.carving
+
+    # the view "ends" before the first guess (27 mm of ink + 5 mm): it stays at 32 mm, the vase reaches 35 mm
+    monkeypatch.setattr(recon.carving, "largest_carvable_radius_mm", lambda *a, **k: 25.0)
+    out = tmp_path / "scan"
+    code = main(_known_cameras_args(scene, out, "--r-outer", "10", "--r-inner", "6", "--stroke", "1"))
+    assert code == 3
+    s = json.loads((out / "summary.json").read_text())
+    assert s["working_volume"]["clipped"] and any("cut there" in c for c in s["failed_checks"])
+    assert _max_radius_mm(out / "model.ply") < 32.5 < gt_radius_mm  # the model is clipped, and says so
+    cap = capsys.readouterr()
+    assert "CHECK FAILED" in cap.out and "FAILED" in cap.err and "cut there" in cap.err
+    assert (out / "model.glb").is_file() and (out / "recording.rrd").is_file()  # still written whole
+
+
+def test_a_model_failing_a_check_exits_3_with_every_output_written(scene, tmp_path, monkeypatch, capsys):
+    import recon.meshing
+
+    broken = recon.meshing.MeshStats(volume_mm3=1.0, area_mm2=1.0, watertight=False, n_faces=10, n_vertices=10,
+                                     n_bodies=4)
+    monkeypatch.setattr(recon.meshing, "mesh_stats", lambda mesh: broken)
+    out = tmp_path / "scan"
+    code = main(_known_cameras_args(scene, out))
+    assert code == 3
+    s = json.loads((out / "summary.json").read_text())
+    assert "the mesh is not watertight" in s["failed_checks"] and any("4 separate pieces" in c for c in s["failed_checks"])
+    err = capsys.readouterr().err
+    assert "FAILED 2 CHECK(S)" in err and "not watertight" in err
+    for name in ("model.glb", "model.ply", "model.obj", "cameras.json", "recording.rrd"):
+        assert (out / name).is_file(), name
+
+
+def test_rejected_silhouettes_are_named_with_their_reason(scene, tmp_path, capsys):
+    import shutil
+
+    import cv2
+
+    masks = tmp_path / "masks"
+    shutil.copytree(scene / "masks", masks)
+    files = sorted(masks.glob("*.png"))
+    cv2.imwrite(str(files[4]), np.zeros((480, 640), np.uint8))
+    args = _known_cameras_args(scene, tmp_path / "scan")
+    args[args.index("--masks") + 1] = str(masks)
+    args.remove("--quiet")
+    assert main(args) == 0
+    cap = capsys.readouterr()
+    assert f"frame {files[4].stem}" in cap.err and "rejected: the mask is empty" in cap.err  # on screen, as it happens
+    assert f"{files[4].stem}" in cap.out and "mask is empty" in cap.out  # and in the printed summary
+    for f in files[1:]:  # too few left: the run stops and says which frames and why
+        cv2.imwrite(str(f), np.zeros((480, 640), np.uint8))
+    assert main(args + ["--out", str(tmp_path / "scan2")]) == 2
+    err = capsys.readouterr().err
+    assert "only 1 of 12 silhouettes usable" in err and f"{files[1].stem}.jpg: the mask is empty" in err
+
+
+def test_silhouettes_confined_to_a_small_volume_touch_its_side_and_top(scene):
+    """Automatic silhouettes never leave the cylinder's image: an object larger than it shows along that outline."""
+    import cv2
+
+    from recon.silhouettes import cylinder_region
+    from turntable.volume_stage import WorkingVolume, mask_touches
+
+    gt = read_cameras(scene / "cameras_gt.json")
+    K, Ts = gt.intrinsics.K, np.stack([f.T_cam_table for f in gt.frames])
+    masks = np.stack([cv2.imread(str(p), 0) > 127 for p in sorted((scene / "masks").glob("*.png"))])
+
+    def touches(r, h):
+        vol = WorkingVolume(radius_mm=r, height_mm=h, max_radius_mm=200.0, max_height_mm=300.0, source="test")
+        confined = np.stack([m & cylinder_region(K, T, (640, 480), r, h) for m, T in zip(masks, Ts)])
+        return mask_touches(confined, K, Ts, vol)
+
+    assert touches(60.0, 160.0) == ([], [])  # the vase: 35 mm from the axis, 110 mm tall
+    side, top = touches(25.0, 160.0)
+    assert len(side) == 12 and top == []
+    side, top = touches(60.0, 80.0)
+    assert side == [] and len(top) == 12

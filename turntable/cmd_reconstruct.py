@@ -15,7 +15,7 @@ from .reconstruct import ReconstructOptions, reconstruct
 
 def add_arguments(parser) -> None:
     parser.add_argument("input", metavar="INPUT", help="folder of images (natural sort) or a video file")
-    add_target_arguments(parser)
+    add_target_arguments(parser, required=False)  # required unless --cameras: checked in options_from_args
     parser.add_argument("--out", required=True, metavar="OUT", help="output folder")
     parser.add_argument("--step-deg", type=float, metavar="D",
                         help="known turntable step per frame (motorised tables); checked against the marks")
@@ -41,13 +41,22 @@ def options_from_args(args) -> ReconstructOptions:
     if args.max_faces < 100:
         raise UserError(f"--max-faces must be at least 100, got {args.max_faces}")
     # fail before the long stages, not after them
+    if args.r_outer is None or args.r_inner is None:
+        if args.cameras is None:
+            raise UserError("--r-outer and --r-inner are required: the printed rings calibrate the cameras "
+                            "(they may be left out only with --cameras)")
+        if (args.r_outer is None) != (args.r_inner is None):
+            raise UserError("give both --r-outer and --r-inner, or neither (with --cameras)")
+        spec = None
+    else:
+        spec = target_from_args(args)
     if args.masks and not Path(args.masks).is_dir():
         raise UserError(f"--masks {args.masks}: not a folder")
     for flag, value in (("--cameras", args.cameras), ("--intrinsics", args.intrinsics)):
         if value and not Path(value).is_file():
             raise UserError(f"{flag} {value}: file not found")
     return ReconstructOptions(
-        input=Path(args.input), out=Path(args.out), spec=target_from_args(args), step_deg=args.step_deg,
+        input=Path(args.input), out=Path(args.out), spec=spec, step_deg=args.step_deg,
         masks_dir=Path(args.masks) if args.masks else None, cameras=Path(args.cameras) if args.cameras else None,
         intrinsics=Path(args.intrinsics) if args.intrinsics else None, resolution=args.resolution,
         max_faces=args.max_faces, every=args.every, fusion=not args.no_fusion, overwrite=args.overwrite,
@@ -69,11 +78,22 @@ def print_summary(res, stream=None) -> None:
     m = s["mesh"]
     ext = " x ".join(f"{v:.1f}" for v in m["extent_mm"])
     w(f"  mesh            {m['vertices']} vertices, {m['faces']} faces, "
-      f"{'watertight' if m['watertight'] else 'NOT watertight'}, {m['volume_cm3']:.1f} cm³, {ext} mm\n")
+      f"{'watertight' if m['watertight'] else 'NOT watertight'}, {m.get('pieces', 1)} piece(s), "
+      f"{m['volume_cm3']:.1f} cm³, {ext} mm\n")
+    v = s.get("working_volume") or {}
+    if v:
+        w(f"  working volume  radius {v['radius_mm']:.0f} mm, height {v['height_mm']:.0f} mm "
+          f"(first guess: {v['first_guess']}; the cameras allow {v['max_radius_mm']:.0f} x {v['max_height_mm']:.0f})\n")
+        for g in v["grown"]:
+            w(f"  grown           {g}\n")
+    for name, why in (s.get("silhouettes") or {}).get("conservative", {}).items():
+        w(f"  conservative    {name}: {why}\n")
     w(f"  fusion          {s['fusion']}\n")
     w("  time            " + ", ".join(f"{k} {v:.1f} s" for k, v in s["time_s"].items()) + "\n")
     for k, p in sorted(s["files"].items()):
         w(f"  {k:<15} {p}\n")
+    for why in s.get("failed_checks", []):
+        w(f"  !! CHECK FAILED {why}\n")
 
 
 def run(args) -> int:
@@ -104,7 +124,11 @@ def run(args) -> int:
     res.summary["files"]["recording"] = str(out / "recording.rrd")
     res.summary["time_s"]["total"] = round(time.perf_counter() - t0, 2)
     print_summary(res)
-    if res.exit_code:
+    if res.failed_checks:
+        print(f"turntable reconstruct: FINISHED, BUT THE MODEL FAILED {len(res.failed_checks)} CHECK(S): "
+              f"{'; '.join(res.failed_checks)} (every output was written; exit code {res.exit_code})",
+              file=sys.stderr)
+    if res.unreadable:
         print("turntable reconstruct: some input files could not be read (listed above); "
               "the model was built from the others", file=sys.stderr)
     if opts.spawn:  # the viewer runs on its own; this command does not wait for it

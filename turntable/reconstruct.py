@@ -46,7 +46,7 @@ __all__ = ["ReconstructOptions", "ReconstructResult", "reconstruct"]
 class ReconstructOptions:
     input: Path
     out: Path
-    spec: TargetSpec
+    spec: TargetSpec | None  # None only with ``cameras``: no ring target in the photos
     step_deg: float | None = None
     masks_dir: Path | None = None
     cameras: Path | None = None
@@ -69,7 +69,15 @@ class ReconstructResult:
     frames_used: list[str]
     frames_skipped: dict[str, str]
     summary: dict = field(default_factory=dict)
-    exit_code: int = 0
+    exit_code: int = 0  # see EXIT_* below
+    failed_checks: list[str] = field(default_factory=list)
+    unreadable: list[str] = field(default_factory=list)  # input images that could not be read
+
+
+EXIT_OK = 0
+EXIT_UNREADABLE = 1  # finished, but some input images could not be read (the rest were used)
+EXIT_CHECK_FAILED = 3  # finished and wrote everything, but the model failed a check (summary: failed_checks)
+MIN_VIEWS = 3
 
 
 # --------------------------------------------------------------------------- helpers
@@ -168,39 +176,145 @@ def _conics_from_arrays(d: dict) -> dict:
     return {str(n): {"outer": c[0], "inner": c[1]} for n, c in zip(d["names"], d["conics"])}
 
 
-def _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress):
+@dataclass(frozen=True)
+class _Silhouettes:
+    masks: np.ndarray  # (V, H, W) bool: object
+    unknown: np.ndarray  # (V, H, W) bool: neither object nor background for sure (carving keeps it)
+    status: list[str]  # "ok", "conservative: <reason>" (kept) or "rejected: <reason>" (dropped)
+
+
+def _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress, vol) -> _Silhouettes:
     hit = cache.load("silhouettes", key)
     if hit is not None:
         progress.note("silhouettes: reused")
-        return hit["masks"].astype(bool), [str(s) for s in hit["status"]]
+        masks = hit["masks"].astype(bool)
+        unknown = hit["unknown"].astype(bool) if "unknown" in hit else np.zeros_like(masks)
+        return _Silhouettes(masks, unknown, [str(s) for s in hit["status"]])
     with progress.stage("silhouettes") as tick:
         if opts.masks_dir is not None:
             H, W = images_rgb[0].shape[:2]
             masks = _read_masks(opts.masks_dir, names, (W, H))
-            status = ["ok" if m.any() else "mask is empty" for m in masks]
+            unknown = np.zeros_like(masks)
+            status = ["ok" if m.any() else "rejected: the mask is empty" for m in masks]
         else:
             from recon.silhouettes import estimate_silhouettes
 
-            res = estimate_silhouettes(images_rgb, K, Ts, opts.spec, progress=tick)
+            import inspect
+
+            volume = {"radius_mm": vol.radius_mm, "height_mm": vol.height_mm}
+            if "radius_mm" not in inspect.signature(estimate_silhouettes).parameters:  # pragma: no cover
+                # an older recon.silhouettes: its cylinder is the target's extent (remove once both have landed)
+                if opts.spec is None:
+                    raise UserError(f"{opts.input}: automatic silhouettes need --r-outer/--r-inner here; "
+                                    "give them or --masks")
+                volume = {}
+            try:
+                res = estimate_silhouettes(images_rgb, K, Ts, opts.spec, **volume, progress=tick)
+            except ValueError as exc:
+                raise UserError(f"{opts.input}: silhouettes: {exc}") from None
             masks, status = np.asarray(res.masks, bool), list(res.status)
-    cache.save("silhouettes", key, masks=masks, status=np.array(status))
-    return masks, status
+            unknown = getattr(res, "unknown", None)
+            unknown = np.zeros_like(masks) if unknown is None else np.asarray(unknown, bool)
+    cache.save("silhouettes", key, masks=masks, unknown=unknown, status=np.array(status))
+    return _Silhouettes(masks, unknown, status)
 
 
-def _stage_hull(masks, K, Ts, opts, cache, key, progress):
+def _silhouette_verdicts(names, status) -> tuple[list[int], dict[str, str], dict[str, str]]:
+    """Kept view indices, rejected frames and conservative (kept) frames, each with its reason."""
+    keep, rejected, conservative = [], {}, {}
+    for i, (n, s) in enumerate(zip(names, status)):
+        if s == "ok":
+            keep.append(i)
+        elif s.startswith("conservative"):
+            keep.append(i)
+            conservative[n] = s.partition(":")[2].strip() or s
+        else:  # "rejected: <reason>" (or a bare reason from an older silhouettes module)
+            rejected[n] = s.partition(":")[2].strip() if s.startswith("rejected") else s
+    return keep, rejected, conservative
+
+
+def _stage_hull(masks, K, Ts, opts, cache, key, progress, vol):
     from recon.types import VoxelHull
 
     hit = cache.load("hull", key)
     if hit is not None:
         progress.note("hull: reused")
-        return VoxelHull(values=hit["values"], origin_table=hit["origin"], voxel_mm=float(hit["voxel_mm"]))
+        meta = {"touches_side": int(hit["touches"][0]), "touches_top": int(hit["touches"][1])}
+        return VoxelHull(values=hit["values"], origin_table=hit["origin"], voxel_mm=float(hit["voxel_mm"]), meta=meta)
     from recon.carving import carve_hull
 
     with progress.stage("carving") as tick:
-        hull = carve_hull(masks, K, Ts, radius_mm=opts.spec.extent_mm + 5.0, resolution=opts.resolution,
-                          max_rejections=opts.max_rejections, progress=tick)
-    cache.save("hull", key, values=hull.values, origin=hull.origin_table, voxel_mm=np.array(hull.voxel_mm))
+        try:
+            hull = carve_hull(masks, K, Ts, radius_mm=vol.radius_mm, height_mm=vol.height_mm,
+                              resolution=opts.resolution, max_rejections=min(opts.max_rejections, len(masks) - 1),
+                              progress=tick)
+        except ValueError as exc:
+            raise UserError(f"{opts.input}: carving: {exc}") from None
+    cache.save("hull", key, values=hull.values, origin=hull.origin_table, voxel_mm=np.array(hull.voxel_mm),
+               touches=np.array([hull.meta["touches_side"], hull.meta["touches_top"]]))
     return hull
+
+
+def _silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progress):
+    """Silhouettes and hull in a working volume grown until the object fits (or the view ends).
+
+    Returns (silhouettes, kept indices, rejected, conservative, hull, volume, volume report).
+    """
+    from .volume_stage import MIN_TOUCH_VIEWS, initial_volume, mask_touches
+
+    H, W = images_rgb[0].shape[:2]
+    try:
+        vol = initial_volume(K, Ts, (W, H), None if opts.spec is None else opts.spec.extent_mm)
+    except ValueError as exc:
+        raise UserError(f"{opts.cameras or opts.input}: {exc}") from None
+    vol_key = stage_key(sil_key, vol.key(), opts.resolution, opts.max_rejections)
+    hit = cache.load("volume", vol_key)
+    grown: list[str] = [str(g) for g in hit["grown"]] if hit is not None else []
+    if hit is not None:
+        vol = replace(vol, radius_mm=float(hit["size"][0]), height_mm=float(hit["size"][1]))
+    automatic = opts.masks_dir is None
+    clipped: list[str] = []
+
+    def carve(sil, keep, key, vol):
+        hull_key = stage_key(key, keep, opts.resolution, opts.max_rejections, vol.key())
+        return _stage_hull(sil.masks[keep] | sil.unknown[keep], K, Ts[keep], opts, cache, hull_key, progress, vol)
+
+    sil, sil_for = None, None
+    for _ in range(32):  # each pass grows the volume or ends the loop; the bound is a safety net
+        key = stage_key(sil_key, vol.key()) if automatic else sil_key  # user masks do not depend on it
+        if key != sil_for:
+            sil, sil_for = _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress, vol), key
+        keep, rejected, conservative = _silhouette_verdicts(names, sil.status)
+        if len(keep) < MIN_VIEWS:
+            return sil, keep, rejected, conservative, None, vol, {}
+        hull, why, touch = None, [], (False, False)
+        if automatic:  # confined to the cylinder's image: an object larger than it touches that outline
+            side, top = mask_touches(sil.masks[keep], K, Ts[keep], vol)
+            touch = (len(side) >= MIN_TOUCH_VIEWS, len(top) >= MIN_TOUCH_VIEWS)
+            why = [f"the silhouettes of {len(v)} views reach its {w}" for w, v, t in
+                   zip(("side", "top"), (side, top), touch) if t]
+        if not why:  # the silhouettes fit: carve, and ask the hull
+            hull = carve(sil, keep, key, vol)
+            touch = (hull.meta["touches_side"] > 0, hull.meta["touches_top"] > 0)
+            why = [f"the carved hull reaches its {w}" for w, t in zip(("side", "top"), touch) if t]
+        if not why:
+            break
+        bigger = vol.grown(*touch)
+        if bigger is None:  # the cameras' view ends here: carve what there is, and say so
+            clipped.append(f"the object reaches past the working volume ({vol.describe()}): {' and '.join(why)}; "
+                           f"the cameras do not see further, so the model is cut there")
+            progress.note(f"WARNING: {clipped[-1]}")
+            break
+        grown.append(f"{vol.describe()} -> {bigger.describe()}: {' and '.join(why)}")
+        progress.note(f"working volume grows: {grown[-1]}")
+        vol = bigger
+    if hull is None:
+        hull = carve(sil, keep, key, vol)
+    cache.save("volume", vol_key, size=np.array([vol.radius_mm, vol.height_mm]), grown=np.array(grown, dtype=str))
+    report = {"radius_mm": round(vol.radius_mm, 1), "height_mm": round(vol.height_mm, 1),
+              "first_guess": vol.source, "max_radius_mm": round(vol.max_radius_mm, 1),
+              "max_height_mm": round(vol.max_height_mm, 1), "grown": grown, "clipped": clipped}
+    return sil, keep, rejected, conservative, hull, vol, report
 
 
 # --------------------------------------------------------------------------- main
@@ -222,7 +336,7 @@ def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, reco
     frame_key = stage_key([f.name for f in frames], [f.bgr.shape for f in good],
                           [float(f.bgr[::64, ::64].mean()) for f in good], opts.every)
 
-    cam_key = stage_key(frame_key, opts.spec.__dict__, opts.step_deg,
+    cam_key = stage_key(frame_key, None if opts.spec is None else opts.spec.__dict__, opts.step_deg,
                         str(opts.intrinsics) if opts.intrinsics else None)
     seq, conics = _stage_cameras(frames, opts, progress, cam_key, out, cache)
     by_name = {fp.image: fp for fp in seq.frames}
@@ -244,19 +358,21 @@ def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, reco
     images_rgb = [cv2.cvtColor(im, cv2.COLOR_BGR2RGB) for im in _undistort([f.bgr for f in used], seq)]
 
     sil_key = stage_key(cam_key, str(opts.masks_dir), Ts)
-    masks, status = _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, sil_key, progress)
-    keep = [i for i, s in enumerate(status) if s == "ok"]
-    for i, s in enumerate(status):
-        if s != "ok":
-            skipped[names[i]] = f"silhouette: {s}"
-    if len(keep) < 3:
-        raise UserError(f"{opts.input}: only {len(keep)} usable silhouette(s); need at least 3")
+    sil, keep, rejected, conservative, hull, vol, vol_report = _silhouettes_and_hull(
+        images_rgb, names, K, Ts, opts, cache, sil_key, progress)
+    for n, why in rejected.items():
+        skipped[n] = f"silhouette rejected: {why}"
+        progress.note(f"silhouettes: frame {n} rejected: {why}")
+    for n, why in conservative.items():
+        progress.note(f"silhouettes: frame {n} kept with a conservative mask: {why}")
+    if len(keep) < MIN_VIEWS:
+        listed = "; ".join(f"{n}: {why}" for n, why in list(rejected.items())[:6])
+        more = f"; and {len(rejected) - 6} more" if len(rejected) > 6 else ""
+        raise UserError(f"{opts.input}: only {len(keep)} of {len(names)} silhouettes usable, need at least "
+                        f"{MIN_VIEWS}; rejected: {listed}{more}")
     names = [names[i] for i in keep]
     images_rgb = [images_rgb[i] for i in keep]
-    masks, Ts = masks[keep], Ts[keep]
-
-    hull_key = stage_key(sil_key, keep, opts.resolution, opts.max_rejections)
-    hull = _stage_hull(masks, K, Ts, opts, cache, hull_key, progress)
+    masks, Ts = sil.masks[keep], Ts[keep]
 
     from recon.meshing import mesh_from_hull
 
@@ -273,15 +389,35 @@ def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, reco
     with progress.stage("colour"):
         mesh = color_vertices(mesh, images_rgb, K, Ts, masks=masks)
 
+    from recon.meshing import mesh_stats
+
+    stats = mesh_stats(mesh)
+    failed = _failed_checks(stats, vol_report)
     files = _export(out, opts, seq, names, mesh, fused, progress)
     summary = _summary(seq, names, skipped, mesh, progress, fusion_note, files)
+    summary["mesh"]["pieces"] = stats.n_bodies
+    summary["working_volume"] = vol_report
+    summary["silhouettes"] = {"rejected": rejected, "conservative": conservative}
+    summary["failed_checks"] = failed
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1) + "\n")
     files["summary"] = out / "summary.json"
     if recorder is not None:
         _record(recorder, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh, conics)
-    exit_code = 1 if any(f.bgr is None for f in frames) else 0
+    exit_code = EXIT_CHECK_FAILED if failed else EXIT_UNREADABLE if any(f.bgr is None for f in frames) else EXIT_OK
     return ReconstructResult(out=out, files=files, frames_used=names, frames_skipped=skipped,
-                             summary=summary, exit_code=exit_code)
+                             summary=summary, exit_code=exit_code, failed_checks=failed,
+                             unreadable=[f.name for f in frames if f.bgr is None])
+
+
+def _failed_checks(stats, vol_report: dict) -> list[str]:
+    """What is wrong with the finished model, one line each (empty: it passed)."""
+    failed = []
+    if not stats.watertight:
+        failed.append("the mesh is not watertight")
+    if stats.n_bodies != 1:
+        failed.append(f"the mesh is {stats.n_bodies} separate pieces, not one")
+    failed += vol_report["clipped"]
+    return failed
 
 
 def _export(out, opts, seq, names, mesh, fused, progress) -> dict[str, Path]:
@@ -346,7 +482,8 @@ def _summary(seq, names, skipped, mesh, progress, fusion_note, files) -> dict:
 
 
 def _record(rec, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh, conics) -> None:
-    rec.log_target(opts.spec.r_outer_mm, opts.spec.r_inner_mm)
+    if opts.spec is not None:
+        rec.log_target(opts.spec.r_outer_mm, opts.spec.r_inner_mm)
     W, H = seq.intrinsics.width, seq.intrinsics.height
     for i, n in enumerate(names):
         rec.log_camera(i, K, W, H, Ts[i], image_rgb=images_rgb[i])
