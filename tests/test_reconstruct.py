@@ -199,6 +199,12 @@ def test_radii_optional_with_cameras(scene, tmp_path, gt_radius_mm, capsys):
     assert "every view sees" in s["working_volume"]["first_guess"] and not s["failed_checks"]
     assert gt_radius_mm - 1.0 < _max_radius_mm(out / "model.ply") < gt_radius_mm + 6.0
     assert "working volume  radius" in capsys.readouterr().out
+    # the same OUT with a smaller first guess: the cached hull of the other volume is not taken for this one
+    args = _known_cameras_args(scene, out, "--r-outer", "10", "--r-inner", "6", "--stroke", "1")
+    args.remove("--quiet")
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert "working volume grows: radius 32 mm" in err and err.index("carving") < err.index("working volume grows")
 
 
 def test_radii_required_without_cameras(scene, tmp_path, capsys):
@@ -238,7 +244,8 @@ def test_a_model_failing_a_check_exits_3_with_every_output_written(scene, tmp_pa
     code = main(_known_cameras_args(scene, out))
     assert code == 3
     s = json.loads((out / "summary.json").read_text())
-    assert "the mesh is not watertight" in s["failed_checks"] and any("4 separate pieces" in c for c in s["failed_checks"])
+    failed = s["failed_checks"]
+    assert "the mesh is not watertight" in failed and any("4 separate pieces" in c for c in failed)
     err = capsys.readouterr().err
     assert "FAILED 2 CHECK(S)" in err and "not watertight" in err
     for name in ("model.glb", "model.ply", "model.obj", "cameras.json", "recording.rrd"):

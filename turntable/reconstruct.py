@@ -17,6 +17,7 @@ Everything in OUT is written atomically; finished stages are cached in
 
 from __future__ import annotations
 
+import inspect
 import json
 import logging
 import math
@@ -199,8 +200,6 @@ def _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress, vol
         else:
             from recon.silhouettes import estimate_silhouettes
 
-            import inspect
-
             volume = {"radius_mm": vol.radius_mm, "height_mm": vol.height_mm}
             if "radius_mm" not in inspect.signature(estimate_silhouettes).parameters:  # pragma: no cover
                 # an older recon.silhouettes: its cylinder is the target's extent (remove once both have landed)
@@ -237,7 +236,7 @@ def _stage_hull(masks, K, Ts, opts, cache, key, progress, vol):
     from recon.types import VoxelHull
 
     hit = cache.load("hull", key)
-    if hit is not None:
+    if hit is not None and "touches" in hit:
         progress.note("hull: reused")
         meta = {"touches_side": int(hit["touches"][0]), "touches_top": int(hit["touches"][1])}
         return VoxelHull(values=hit["values"], origin_table=hit["origin"], voxel_mm=float(hit["voxel_mm"]), meta=meta)
