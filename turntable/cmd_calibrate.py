@@ -29,9 +29,12 @@ log = logging.getLogger(__name__)
 SOLVERS = ("paper", "pencil", "refine")
 
 
-def add_target_arguments(parser, required: bool = True) -> None:
-    """``--r-outer``, ``--r-inner``, ``--stroke``: shared by every command that sees the target."""
-    g = parser.add_argument_group("target (millimetres, stroke centre lines)")
+def add_target_arguments(parser, required: bool = True, optional_note: str = "") -> None:
+    """``--r-outer``, ``--r-inner``, ``--stroke``: shared by every command that sees the target.
+
+    ``required=False`` leaves the check to the command (``optional_note`` says when they may be left out).
+    """
+    g = parser.add_argument_group(f"target (millimetres, stroke centre lines{optional_note})")
     g.add_argument("--r-outer", type=float, required=required, metavar="MM", help="outer ring radius")
     g.add_argument("--r-inner", type=float, required=required, metavar="MM", help="inner ring radius")
     g.add_argument("--stroke", type=float, default=3.0, metavar="MM", help="nominal stroke width (default 3)")

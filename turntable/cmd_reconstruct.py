@@ -15,7 +15,7 @@ from .reconstruct import ReconstructOptions, reconstruct
 
 def add_arguments(parser) -> None:
     parser.add_argument("input", metavar="INPUT", help="folder of images (natural sort) or a video file")
-    add_target_arguments(parser, required=False)  # required unless --cameras: checked in options_from_args
+    add_target_arguments(parser, required=False, optional_note="; optional with --cameras")  # see options_from_args
     parser.add_argument("--out", required=True, metavar="OUT", help="output folder")
     parser.add_argument("--step-deg", type=float, metavar="D",
                         help="known turntable step per frame (motorised tables); checked against the marks")
