@@ -47,36 +47,52 @@ import numpy as np
 from calib.camera import as_K, as_poses, plane_homography, project_points
 from calib.target import TargetSpec
 
+from .silhouette_checks import camera_azimuths_deg, fill_gaps, frame_status, touches_region_side
+
 __all__ = ["SilhouetteResult", "estimate_silhouettes", "cylinder_region", "rectify_to_table"]
 
 _MARGIN_MM = 5.0  # the object may overhang the target's outermost ink by this much
 _PLANE_PX_PER_MM = 2.5  # table-plate resolution
+_PLATE_BORDER_MM = 40.0  # the table plate reaches this far beyond the working volume
 _MIN_TAU = 6.0  # colour distance (0..255 units) below which a pixel agrees with a plate, at least
 _TRUST = 0.6  # a plate is trusted where this fraction of frames agrees with it
-_MIN_AREA = 0.02  # a silhouette smaller than this fraction of the cylinder's image is "empty"
 _STRONG = 0.75  # ... and its explanations are hard constraints where this fraction does
 _WORK_PX = 360_000  # GrabCut runs on at most this many pixels (the region's box, downscaled)
 
 
 @dataclass(frozen=True)
 class SilhouetteResult:
-    """Silhouettes of a sequence.
+    """Silhouettes of a sequence, in three states: object, background, unknown.
 
     Attributes
     ----------
     masks : (V, H, W) bool
         True on the object.
+    unknown : (V, H, W) bool
+        Pixels neither confidently object nor background (never overlapping
+        ``masks``). Carve with ``masks | unknown``: a view rejects a voxel only
+        where it says background with confidence. In an ``"ok"`` frame only
+        doubtful pixels next to the outline; in a ``"conservative"`` frame every
+        pixel of the working volume's image that is not confidently background.
     quality : (V,) float64
-        In [0, 1]: the fraction of a ring two pixels outside the outline that
-        a background plate confirms, times an area-consistency factor
-        (``min(r, 1/r)``, ``r`` the area over its neighbours' median).
+        In [0, 1]: the outline support (fraction of a ring two pixels outside
+        the outline that looks like background) times an area-consistency
+        factor (``min(r, 1/r)``, ``r`` the area over its neighbours' median).
     status : tuple of str
-        ``"ok"`` or why the frame's silhouette is implausible.
+        Per frame ``"ok"``, ``"conservative: <reason>"`` (kept, with a widened
+        ``unknown``) or ``"rejected: <reason>"`` (leave the frame out). No gap
+        of more than 30 deg of the turn between kept frames is opened by a
+        rejection (see :mod:`recon.silhouette_checks`).
+    touches_volume : (V,) bool
+        The mask reaches the boundary of the working volume's image (its side
+        or top): the object may be larger than the volume; grow it and re-run.
     """
 
     masks: np.ndarray
+    unknown: np.ndarray
     quality: np.ndarray
     status: tuple[str, ...]
+    touches_volume: np.ndarray
 
 
 def cylinder_region(K: np.ndarray, T_cam_table: np.ndarray, size: tuple[int, int], radius_mm: float,
@@ -156,6 +172,27 @@ def _shadow_dist(img: np.ndarray, plate: np.ndarray) -> np.ndarray:
     return np.abs(i - g[..., None] * p).max(axis=-1)
 
 
+_BIN = 8  # colour-set bins: 8 DN per channel (32^3 bins), one bin of slack around each seen colour
+
+
+def _colour_set(samples: np.ndarray, min_count: int = 2) -> np.ndarray:
+    """(32, 32, 32) bool: the colours seen at least ``min_count`` times in ``samples`` (..., 3) uint8,
+    grown by one bin (noise, a little shading)."""
+    q = (samples.reshape(-1, 3) // _BIN).astype(np.intp)
+    n = 256 // _BIN
+    hist = np.bincount((q[:, 0] * n + q[:, 1]) * n + q[:, 2], minlength=n ** 3).reshape(n, n, n)
+    seen = (hist >= min_count).astype(np.uint8)
+    from scipy.ndimage import binary_dilation
+
+    return binary_dilation(seen, np.ones((3, 3, 3), bool))
+
+
+def _in_set(img: np.ndarray, colours: np.ndarray) -> np.ndarray:
+    """(...) bool: whether each pixel of ``img`` (..., 3) uint8 has a colour of the set."""
+    q = (img // _BIN).astype(np.intp)
+    return colours[q[..., 0], q[..., 1], q[..., 2]]
+
+
 def _median_frames(stack: np.ndarray) -> np.ndarray:
     """Per-pixel median (lower middle) over axis 0 of a uint8 stack."""
     k = (len(stack) - 1) // 2
@@ -188,12 +225,17 @@ class _Plate:
 class _Plates:
     """Room plate (image) and table plate (rectified plane), with where they are trusted."""
 
-    def __init__(self, crops, images, K, T, box, radius_mm, tau):
+    def __init__(self, crops, images, K, T, box, radius_mm, tau, inside, room_colours):
         room = _median_frames(crops)
         lo, hi = _envelope(room)
         agree = np.mean([_range_dist(c, lo, hi) < tau for c in crops], axis=0)
+        # Inside the cylinder's image a static plate pixel may be a static object (a uniformly
+        # coloured body of revolution looks the same in every frame): trust it as background only
+        # where its colour is one the surroundings show outside the cylinder.
         self.room = _Plate(room, lo, hi, agree >= _TRUST, agree >= _STRONG)
-        self.plane_radius = radius_mm + 40.0
+        verified = ~inside | _in_set(room, room_colours)
+        self.room_verified = _Plate(room, lo, hi, self.room.trust & verified, self.room.strong & verified)
+        self.plane_radius = radius_mm + _PLATE_BORDER_MM
         rect = np.stack([rectify_to_table(im, K, t, self.plane_radius, _PLANE_PX_PER_MM) for im, t in zip(images, T)])
         ones = np.ones(images.shape[1:3], np.uint8)
         seen = np.mean([rectify_to_table(ones, K, t, self.plane_radius, _PLANE_PX_PER_MM) > 0 for t in T], axis=0)
@@ -217,9 +259,21 @@ class _Plates:
         return _Plate(*warp, trust, trust)
 
 
-def _initial_labels(img, region, room: _Plate, table: _Plate, tau):
-    """GrabCut labels (h, w) uint8 from the plates, the pixels a plate explains as background, and
-    those a trusted plate contradicts.
+@dataclass(frozen=True)
+class _Evidence:
+    """What the plates say about the pixels (h, w) of one frame's box."""
+
+    labels: np.ndarray  # uint8 GrabCut labels
+    explained: np.ndarray  # bool: a trusted plate matches the pixel's colour
+    shadow: np.ndarray  # bool: a darker copy of a trusted plate matches it
+    trusted: np.ndarray  # bool: some plate is trusted here
+    disagrees: np.ndarray  # bool: a trusted plate contradicts the pixel
+    background: np.ndarray  # (h, w, 3) uint8: the trusted plate's colour
+    usable: np.ndarray  # bool: where ``background`` is meaningful
+
+
+def _initial_labels(img, region, room: _Plate, table: _Plate, tau) -> _Evidence:
+    """GrabCut labels from the plates, and what each pixel's plates say (:class:`_Evidence`).
 
     Where the table plate is trusted it alone decides: it shows the plane point
     behind the pixel as other views saw it, so an object that covers the same
@@ -244,7 +298,7 @@ def _initial_labels(img, region, room: _Plate, table: _Plate, tau):
     labels[~region] = cv2.GC_BGD
     background = np.where(table.trust[..., None], table.mid, room.mid)
     usable = table.trust | (room.trust & ~table.trust)
-    return labels, explained, trusted & (d > tau) & ~shadow, background, usable
+    return _Evidence(labels, explained, shadow, trusted, trusted & (d > tau) & ~shadow, background, usable)
 
 
 def _grabcut(img, labels, iterations: int = 2) -> np.ndarray:
@@ -340,51 +394,70 @@ def _clean(mask: np.ndarray, base: np.ndarray, explained: np.ndarray) -> np.ndar
     return out
 
 
-def _frame_mask(img, region, base, plates: _Plates, T, tau) -> tuple[np.ndarray, float]:
-    """Mask (h, w) bool of one frame inside the box, and the fraction of its outline a plate confirms."""
-    h, w = img.shape[:2]
-    labels, explained, disagrees, background, usable = _initial_labels(img, region, plates.room,
-                                                                       plates.table_in_frame(T, (h, w)), tau)
-    prob = _grabcut(img, labels)
-    scale = math.sqrt(h * w / _WORK_PX)
-    mask = _refine_outline(prob, explained, disagrees, band_px=max(2, int(math.ceil(scale)) + 1)) & region
-    mask = _alpha_outline(img, mask, background, usable, tau) & region
-    mask = _clean(mask, base, explained)
-    m8 = mask.astype(np.uint8)  # the ring two pixels outside the outline (clear of blended pixels)
-    outline = (cv2.dilate(m8, np.ones((5, 5), np.uint8)) > 0) & (cv2.dilate(m8, np.ones((3, 3), np.uint8)) == 0)
-    confirmed = float(explained[outline].mean()) if outline.any() else 0.0
-    return mask, confirmed
+def _object_colour_near(img: np.ndarray, mask: np.ndarray, size: int = 11) -> tuple[np.ndarray, np.ndarray]:
+    """Mean colour (h, w, 3) float32 of the mask pixels at least two pixels inside, within ``size`` x
+    ``size``, and where that mean exists (h, w) bool."""
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(np.float32)
+    weight = cv2.boxFilter(inner, -1, (size, size), normalize=False)
+    F = cv2.boxFilter(img.astype(np.float32) * inner[..., None], -1, (size, size), normalize=False)
+    return F / np.maximum(weight, 1e-6)[..., None], weight > 0.5
 
 
-def _plausibility(masks: np.ndarray, confirmed: np.ndarray, region_px: np.ndarray) -> tuple[np.ndarray, tuple[str, ...]]:
-    """Quality (V,) and status per frame from areas, borders and outline support.
+def _outline_support(img, mask, ev: _Evidence, tau) -> float:
+    """Fraction of the ring two pixels outside the outline that looks like background.
 
-    ``region_px`` (V,) is the area of the cylinder's image: a silhouette under
-    ``_MIN_AREA`` of it is taken for leftovers of the background (ring lines,
-    shadow edges), not an object.
+    Where a plate is trusted, the pixel must match it (or a shadow of it).
+    Where none is (the object covers those pixels in most frames, so no plate
+    knows what lies behind them: typical right next to the object on real
+    photos), the outline must sit on an edge: the pixel must differ by more
+    than ``3 tau`` from the object's colour just inside. "No plate knows" is
+    not evidence against the outline.
     """
-    V, H, W = masks.shape
-    area = masks.reshape(V, -1).sum(axis=1).astype(np.float64)
-    quality = np.zeros(V)
-    status = []
-    for i in range(V):
-        nb = [area[(i + d) % V] for d in (-2, -1, 1, 2) if V > 2 and (i + d) % V != i]
-        ref = float(np.median(nb)) if nb else area[i]
-        ratio = area[i] / ref if ref > 0 else (1.0 if area[i] == 0 else np.inf)
-        m = masks[i]
-        border = int(m[0].sum() + m[-1].sum() + m[:, 0].sum() + m[:, -1].sum())
-        quality[i] = confirmed[i] * (min(ratio, 1.0 / ratio) if ratio > 0 else 0.0)
-        if area[i] < _MIN_AREA * region_px[i]:
-            status.append(f"empty silhouette ({int(area[i])} px)")
-        elif border > 0.25 * (W + H):
-            status.append(f"silhouette touches the image border along {border} px")
-        elif not 0.67 <= ratio <= 1.5:
-            status.append(f"silhouette area jumps to {100 * ratio:.0f}% of its neighbours'")
-        elif confirmed[i] < 0.5:
-            status.append(f"only {100 * confirmed[i]:.0f}% of the outline is explained by the background")
-        else:
-            status.append("ok")
-    return quality, tuple(status)
+    m8 = mask.astype(np.uint8)
+    ring = (cv2.dilate(m8, np.ones((5, 5), np.uint8)) > 0) & (cv2.dilate(m8, np.ones((3, 3), np.uint8)) == 0)
+    if not ring.any():
+        return 0.0
+    F, has_F = _object_colour_near(img, mask)
+    edge = has_F & (np.abs(img.astype(np.float32) - F).max(axis=-1) > 3.0 * tau)
+    supported = np.where(ev.trusted, ev.explained | ev.shadow, edge)
+    return float(supported[ring].mean())
+
+
+def _doubtful(img, mask, region, ev: _Evidence) -> np.ndarray:
+    """(h, w) bool: pixels of the region outside the mask that are not confidently background.
+
+    Confident background: a trusted plate matches the pixel itself (a mere
+    darker copy of the plate — a shadow — could also be a dull side of a
+    pale object), or no plate is trusted and the pixel's colour is none the
+    object shows.
+    """
+    object_colours = _colour_set(img[mask], min_count=3) if mask.sum() >= 50 else np.zeros((32,) * 3, bool)
+    confident = np.where(ev.trusted, ev.explained, ~_in_set(img, object_colours))
+    return region & ~mask & ~confident
+
+
+@dataclass(frozen=True)
+class _FrameOut:
+    mask: np.ndarray  # (h, w) bool
+    doubtful: np.ndarray  # (h, w) bool, see _doubtful
+    support: float  # see _outline_support
+
+
+def _frame_mask(img, region, base, plates: _Plates, T, tau, verified: bool) -> _FrameOut:
+    """Mask of one frame inside the box, the doubtful pixels, and how well its outline is supported.
+
+    ``verified``: trust the room plate inside the volume's image only where its
+    colour is one of the room's (see :class:`_Plates`).
+    """
+    h, w = img.shape[:2]
+    room = plates.room_verified if verified else plates.room
+    ev = _initial_labels(img, region, room, plates.table_in_frame(T, (h, w)), tau)
+    prob = _grabcut(img, ev.labels)
+    scale = math.sqrt(h * w / _WORK_PX)
+    mask = _refine_outline(prob, ev.explained, ev.disagrees, band_px=max(2, int(math.ceil(scale)) + 1)) & region
+    mask = _alpha_outline(img, mask, ev.background, ev.usable, tau) & region
+    mask = _clean(mask, base, ev.explained)
+    return _FrameOut(mask, _doubtful(img, mask, region, ev), _outline_support(img, mask, ev, tau))
 
 
 def _noise_tau(samples: np.ndarray) -> float:
@@ -395,7 +468,9 @@ def _noise_tau(samples: np.ndarray) -> float:
     return max(_MIN_TAU, 1.5 * float(np.median(np.percentile(far, 95, axis=1))))
 
 
-def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, spec: TargetSpec, *,
+def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray,
+                         spec: TargetSpec | None = None, *, radius_mm: float | None = None,
+                         height_mm: float | None = None,
                          progress: Callable[[int, int], None] | None = None) -> SilhouetteResult:
     """Object silhouettes of a turntable sequence (fixed camera, table turning).
 
@@ -408,46 +483,92 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
     T_cam_table : (V, 4, 4) float
         Per-frame pose, table (mm) to camera (mm); the table frame turns with
         the turntable.
-    spec : TargetSpec
-        The printed target: the object stands inside ``spec.extent_mm``.
+    spec : TargetSpec, optional
+        The printed target: the object stands inside ``spec.extent_mm`` (+ a
+        margin). Not needed when ``radius_mm`` is given.
+    radius_mm, height_mm : float, optional
+        The working volume: a cylinder about the table +Y axis, ``r <=
+        radius_mm``, ``0 <= Y <= height_mm`` (table frame, mm). Default radius:
+        the target's extent + 5 mm; default height: the largest height most
+        views see.
     progress : callable(done, total), optional
         Called after each frame.
 
     Returns
     -------
     SilhouetteResult
-        Masks, quality and per-frame status (see the module docstring).
+        Masks, unknown pixels, quality, per-frame status and whether each mask
+        reaches the volume's boundary (see :class:`SilhouetteResult`).
     """
     imgs, K, T = _check_inputs(images_rgb, K, T_cam_table)
     from .carving import largest_visible_height_mm
 
     V, H, W = imgs.shape[:3]
-    radius = float(spec.extent_mm) + _MARGIN_MM
-    height = largest_visible_height_mm(K, T, W, H)
+    if radius_mm is None and spec is None:
+        raise ValueError("estimate_silhouettes: give the target spec or radius_mm")
+    radius = float(radius_mm) if radius_mm is not None else float(spec.extent_mm) + _MARGIN_MM
+    height = float(height_mm) if height_mm is not None else largest_visible_height_mm(K, T, W, H)
     regions = [cylinder_region(K, t, (W, H), radius, height) for t in T]
     union = np.any(regions, axis=0)
-    masks = np.zeros((V, H, W), bool)
+    unknown = np.zeros((V, H, W), bool)
     if not union.any():
-        return SilhouetteResult(masks, np.zeros(V), tuple("the target region is not in view" for _ in range(V)))
+        return SilhouetteResult(unknown.copy(), unknown, np.zeros(V),
+                                ("rejected: the working volume is not in view",) * V, np.zeros(V, bool))
     rows, cols = np.flatnonzero(union.any(axis=1)), np.flatnonzero(union.any(axis=0))
     y0, y1, x0, x1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
     crops = imgs[:, y0:y1, x0:x1]
     outside = ~union
-    tau = _noise_tau(imgs[:, outside][:, ::7]) if outside.sum() >= 100 else _MIN_TAU
-    plates = _Plates(crops, imgs, K, T, (y0, x0), radius, tau)
-    confirmed = np.zeros(V)
+    samples = imgs[:, outside][:, ::7]
+    tau = _noise_tau(samples) if outside.sum() >= 100 else _MIN_TAU
+    # the room's colours: outside the volume and off the table top around it (the paper is the table's)
+    room = outside & ~np.any([cylinder_region(K, t, (W, H), radius + _PLATE_BORDER_MM, 0.0) for t in T], axis=0)
+    room_colours = _colour_set(imgs[:, room][:, ::7]) if room.sum() >= 100 else np.ones((32, 32, 32), bool)
+    plates = _Plates(crops, imgs, K, T, (y0, x0), radius, tau, union[y0:y1, x0:x1], room_colours)
+    box = (slice(y0, y1), slice(x0, x1))
+    bases = [cylinder_region(K, t, (W, H), radius, 0.0)[box] for t in T]
+    regions_box = [r[box] for r in regions]
+    region_px = np.array([r.sum() for r in regions], float)
 
-    def one(i: int) -> int:
-        base = cylinder_region(K, T[i], (W, H), radius, 0.0)[y0:y1, x0:x1]
-        masks[i, y0:y1, x0:x1], confirmed[i] = _frame_mask(crops[i], regions[i][y0:y1, x0:x1], base, plates,
-                                                           T[i], tau)
-        return i
+    def run(verified: bool, report):
+        out = [None] * V
 
-    # Frames are independent and OpenCV (GrabCut, distance transforms, warps)
-    # releases the GIL: one thread per core. Each frame writes only its own rows.
-    with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, 8))) as pool:
-        for done, _ in enumerate(pool.map(one, range(V)), start=1):
-            if progress is not None:
-                progress(done, V)
-    quality, status = _plausibility(masks, confirmed, np.array([r.sum() for r in regions], float))
-    return SilhouetteResult(masks=masks, quality=quality, status=status)
+        def one(i: int) -> int:
+            out[i] = _frame_mask(crops[i], regions_box[i], bases[i], plates, T[i], tau, verified)
+            return i
+
+        # Frames are independent and OpenCV (GrabCut, distance transforms, warps)
+        # releases the GIL: one thread per core.
+        with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, 8))) as pool:
+            for done, _ in enumerate(pool.map(one, range(V)), start=1):
+                if report is not None:
+                    report(done, V)
+        m = np.zeros((V, H, W), bool)
+        for i, o in enumerate(out):
+            m[(i, *box)] = o.mask
+        border = np.array([f[0].sum() + f[-1].sum() + f[:, 0].sum() + f[:, -1].sum() for f in m])
+        quality, status = frame_status(m.reshape(V, -1).sum(axis=1), np.array([o.support for o in out]), border,
+                                       region_px, (W, H))
+        return m, out, quality, status
+
+    masks, outs, quality, status = run(False, progress)
+    # A static object (a plain body of revolution: the same image in every frame) is part of the
+    # room plate. When many frames fail their checks, try again trusting the room plate inside
+    # the volume only where it shows the room's colours, and keep per frame the better result.
+    if sum(s != "ok" for s in status) >= max(2, 0.1 * V):
+        masks2, outs2, quality2, _ = run(True, None)
+        better = quality2 > quality
+        masks[better] = masks2[better]
+        outs = [o2 if b else o for o, o2, b in zip(outs, outs2, better)]
+        border = np.array([f[0].sum() + f[-1].sum() + f[:, 0].sum() + f[:, -1].sum() for f in masks])
+        quality, status = frame_status(masks.reshape(V, -1).sum(axis=1), np.array([o.support for o in outs]),
+                                       border, region_px, (W, H))
+    status = fill_gaps(status, camera_azimuths_deg(T))
+    band = np.ones((3, 3), np.uint8)
+    for i in range(V):
+        if status[i].startswith("conservative"):
+            unknown[(i, *box)] = outs[i].doubtful
+        elif status[i] == "ok":  # doubtful pixels on the outline only
+            near = cv2.dilate(outs[i].mask.astype(np.uint8), band) > 0
+            unknown[(i, *box)] = outs[i].doubtful & near
+    touches = np.array([touches_region_side(m, r) for m, r in zip(masks, regions)])
+    return SilhouetteResult(masks=masks, unknown=unknown, quality=quality, status=status, touches_volume=touches)

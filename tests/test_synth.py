@@ -275,3 +275,30 @@ def test_failed_render_leaves_nothing_behind(tmp_path, monkeypatch):
         make_sequence(tmp_path / "seq", _small_options(frames=3, supersample=1))
     assert len(calls) == 2
     assert list(tmp_path.iterdir()) == [], "partial output or temporary folder left behind"
+
+
+@pytest.mark.parametrize("text", ["0.9,0.9", "1.2,0.9,0.9", "ivory"])
+def test_bad_albedo_is_refused(tmp_path, capsys, text):
+    with pytest.raises(SystemExit) as exc:
+        main(["synth", str(tmp_path / "out"), "--frames", "1", "--size", "64x48", "--albedo", text])
+    assert exc.value.code == 2 and "--albedo" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="--albedo"):
+        _small_options(albedo=(0.5, 1.5, 0.5))
+
+
+def test_uniform_albedo_renders_one_colour(tmp_path):
+    """--albedo: every object pixel is the same colour up to shading (channel ratios of the albedo)."""
+    rgb = (0.85, 0.5, 0.2)
+    out = make_sequence(tmp_path / "seq", _small_options(frames=1, noise=0.0, albedo=rgb))
+    img = cv2.imread(str(out / "images/frame_000.jpg"))[..., ::-1].astype(float)
+    mask = cv2.imread(str(out / "masks/frame_000.png"), cv2.IMREAD_GRAYSCALE) > 0
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    px = img[inner]
+    lit = px[px[:, 0] > np.percentile(px[:, 0], 50)]
+    # sRGB ratios survive shading (a common factor in linear light): G/R and B/R of the albedo
+    tol = 0.08  # JPEG and highlights
+    assert abs(np.median(lit[:, 1] / lit[:, 0]) - rgb[1] / rgb[0]) < tol
+    assert abs(np.median(lit[:, 2] / lit[:, 0]) - rgb[2] / rgb[0]) < tol
+    import trimesh
+    gt = trimesh.load_mesh(out / "object_gt.ply")
+    assert (np.asarray(gt.visual.vertex_colors)[:, :3] == np.round(np.array(rgb) * 255)).all()

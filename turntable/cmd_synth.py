@@ -24,6 +24,19 @@ def _size(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"expected WxH (e.g. 1280x960), got {text!r}") from None
 
 
+def _albedo(text: str) -> tuple[float, float, float]:
+    named = {"white": (0.85, 0.84, 0.82)}
+    if text.lower() in named:
+        return named[text.lower()]
+    try:
+        rgb = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        rgb = ()
+    if len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb):
+        raise argparse.ArgumentTypeError(f"expected R,G,B in [0, 1] (e.g. 0.85,0.84,0.82) or 'white', got {text!r}")
+    return rgb
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("out", metavar="OUT", help="output folder (must not exist or be empty, unless --overwrite)")
     p.add_argument("--object", default="vase",
@@ -55,6 +68,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--r-outer", type=float, default=80.0, help="outer ring centre-line radius, mm (default 80)")
     p.add_argument("--r-inner", type=float, default=50.0, help="inner ring centre-line radius, mm (default 50)")
     p.add_argument("--stroke", type=float, default=3.0, help="ring stroke width, mm (default 3)")
+    p.add_argument("--albedo", type=_albedo, default=None, metavar="R,G,B",
+                   help="colour the object uniformly with this sRGB albedo in [0, 1] ('white' = 0.85,0.84,0.82) "
+                        "instead of the procedural texture")
     p.add_argument("--supersample", type=int, default=3, help="rays per pixel per axis at edges (default 3)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty OUT")
@@ -74,7 +90,7 @@ def options_from_args(args: argparse.Namespace):
             backdrop=args.backdrop, handheld=args.handheld, k1=args.k1, k2=args.k2,
             principal_point=None if args.principal_point is None else tuple(args.principal_point),
             r_outer=args.r_outer, r_inner=args.r_inner, stroke=args.stroke, seed=args.seed,
-            supersample=args.supersample)
+            supersample=args.supersample, albedo=args.albedo)
     except ValueError as exc:
         raise UserError(str(exc)) from None
 

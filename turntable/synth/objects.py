@@ -103,6 +103,30 @@ class ProceduralTexture:
         return np.clip(rgb, 0.0, 1.0).astype(np.float32)
 
 
+@dataclass(frozen=True)
+class UniformAlbedo:
+    """One sRGB albedo ``rgb`` (3,) in [0, 1] everywhere: a white ceramic, a plain 3D print."""
+
+    rgb: tuple[float, float, float]
+
+    def __call__(self, pts_obj: np.ndarray) -> np.ndarray:
+        """sRGB colours (N, 3) float32 in [0, 1] at object points ``pts_obj`` (N, 3) mm."""
+        n = len(np.asarray(pts_obj).reshape(-1, 3))
+        return np.tile(np.asarray(self.rgb, np.float32), (n, 1))
+
+
+def with_uniform_albedo(mesh: trimesh.Trimesh, rgb) -> trimesh.Trimesh:
+    """A copy of ``mesh`` coloured by one sRGB albedo ``rgb`` (3,) in [0, 1] (vertex colours and renderer)."""
+    rgb = tuple(float(c) for c in rgb)
+    if len(rgb) != 3 or not all(0.0 <= c <= 1.0 for c in rgb):
+        raise ValueError(f"albedo: expected three values in [0, 1], got {rgb}")
+    out = mesh.copy()
+    byte = np.round(np.asarray(rgb) * 255.0).astype(np.uint8)
+    out.visual = trimesh.visual.ColorVisuals(out, vertex_colors=np.tile(np.append(byte, 255), (len(out.vertices), 1)))
+    out.metadata["albedo"] = UniformAlbedo(rgb)
+    return out
+
+
 def procedural_colors(pts_obj: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Colours (N, 3) uint8 of a fresh :class:`ProceduralTexture` drawn from ``rng``."""
     return np.round(ProceduralTexture.random(rng)(pts_obj) * 255.0).astype(np.uint8)

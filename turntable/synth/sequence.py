@@ -51,7 +51,7 @@ from calib.target import TargetSpec
 from calib.types import FramePose, Intrinsics, SequenceCalibration
 from turntable.cameras_io import write_cameras
 
-from .objects import OBJECT_NAMES, load_object, make_object
+from .objects import OBJECT_NAMES, load_object, make_object, with_uniform_albedo
 from .render import render_view
 from .scene import _DISC_THICKNESS_MM, BACKDROPS, build_scene
 
@@ -98,6 +98,7 @@ class SynthOptions:
     stroke: float = 3.0
     seed: int = 0
     supersample: int = 3
+    albedo: tuple[float, float, float] | None = None  # one sRGB colour in [0, 1] instead of the texture
 
     def __post_init__(self) -> None:
         checks = [
@@ -113,6 +114,8 @@ class SynthOptions:
             (self.backdrop in BACKDROPS, f"--backdrop must be one of {', '.join(BACKDROPS)}, got {self.backdrop!r}"),
             (1 <= self.supersample <= 8, f"--supersample must be 1-8, got {self.supersample}"),
             (all(math.isfinite(v) for v in (self.step_deg, self.k1, self.k2)), "angles and distortion must be finite"),
+            (self.albedo is None or (len(self.albedo) == 3 and all(0.0 <= c <= 1.0 for c in self.albedo)),
+             f"--albedo must be three values in [0, 1] (R,G,B), got {self.albedo}"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -205,9 +208,11 @@ def _sensor(rgb: np.ndarray, opts: SynthOptions, K: np.ndarray, rng: np.random.G
 
 def _load_mesh(opts: SynthOptions, rng: np.random.Generator):
     if opts.object in OBJECT_NAMES:
-        return make_object(opts.object, rng)
-    spec = opts.target_spec()
-    return load_object(opts.object, rng, max_radius_mm=0.85 * (spec.r_inner_mm - spec.stroke_mm / 2))
+        mesh = make_object(opts.object, rng)
+    else:
+        spec = opts.target_spec()
+        mesh = load_object(opts.object, rng, max_radius_mm=0.85 * (spec.r_inner_mm - spec.stroke_mm / 2))
+    return mesh if opts.albedo is None else with_uniform_albedo(mesh, opts.albedo)
 
 
 def _publish(tmp: Path, out: Path, overwrite: bool) -> None:

@@ -1,0 +1,142 @@
+"""Per-frame checks of automatic silhouettes: keep, keep conservatively, or drop.
+
+A silhouette that looks wrong is not simply dropped: a dropped frame is a
+missing view, and a sequence that loses many neighbouring frames loses the
+views that carve a whole side of the object. So a frame is
+
+* ``"ok"``: its mask is used as it is (only doubtful pixels right next to the
+  outline are left unknown);
+* ``"conservative: <reason>"``: kept, with every pixel of the working volume's
+  image that is not confidently background marked unknown, so carving with
+  ``mask | unknown`` can make the hull larger there but never eat the object;
+* ``"rejected: <reason>"``: dropped (nothing usable: an empty or black
+  frame, the volume out of view) — unless dropping it would leave more than
+  ``max_gap_deg`` of the turn without a view, then it is kept conservatively.
+
+Angles of the turn are those of the camera centres about the table's +Y axis,
+``atan2(Z, X)`` of ``C_table = -R_cam_table^T t_cam_table``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+__all__ = ["frame_status", "camera_azimuths_deg", "fill_gaps", "touches_region_side"]
+
+_MIN_AREA = 0.02  # a silhouette smaller than this fraction of the cylinder's image is "empty"
+_MIN_SUPPORT = 0.5  # outline fraction that must look like background
+_TOUCH_PX = 8  # mask pixels on the volume's image boundary that count as "reaches it"
+
+
+def frame_status(area_px: np.ndarray, support: np.ndarray, border_px: np.ndarray, region_px: np.ndarray,
+                 size: tuple[int, int]) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Quality (V,) in [0, 1] and status per frame from areas, borders and outline support.
+
+    Parameters
+    ----------
+    area_px, support, border_px, region_px : (V,) arrays
+        Mask area, outline support (see ``recon.silhouettes``), mask pixels on
+        the image border, area of the working volume's image, per frame.
+    size : (W, H)
+        Image size, pixels.
+    """
+    area = np.asarray(area_px, np.float64)
+    V = len(area)
+    W, H = size
+    quality = np.zeros(V)
+    status = []
+    for i in range(V):
+        nb = [area[(i + d) % V] for d in (-2, -1, 1, 2) if V > 2 and (i + d) % V != i]
+        ref = float(np.median(nb)) if nb else area[i]
+        ratio = area[i] / ref if ref > 0 else (1.0 if area[i] == 0 else np.inf)
+        quality[i] = float(support[i]) * (min(ratio, 1.0 / ratio) if 0 < ratio < np.inf else 0.0)
+        if region_px[i] == 0 or area[i] < _MIN_AREA * region_px[i]:
+            quality[i] = 0.0
+            status.append("rejected: the working volume is not in view" if region_px[i] == 0 else
+                          f"rejected: empty silhouette ({int(area[i])} px)")
+        elif border_px[i] > 0.25 * (W + H):
+            status.append(f"conservative: silhouette touches the image border along {int(border_px[i])} px")
+        elif not 0.67 <= ratio <= 1.5:
+            status.append(f"conservative: silhouette area jumps to {100 * ratio:.0f}% of its neighbours'")
+        elif support[i] < _MIN_SUPPORT:
+            status.append(f"conservative: only {100 * support[i]:.0f}% of the outline looks like background")
+        else:
+            status.append("ok")
+    return quality, tuple(status)
+
+
+def camera_azimuths_deg(T_cam_table: np.ndarray) -> np.ndarray:
+    """Angle (V,) degrees of each camera centre about the table +Y axis, ``atan2(Z, X)`` in the table frame."""
+    T = np.asarray(T_cam_table, np.float64).reshape(-1, 4, 4)
+    C = -np.einsum("vji,vj->vi", T[:, :3, :3], T[:, :3, 3])
+    return np.degrees(np.arctan2(C[:, 2], C[:, 0]))
+
+
+def _circular_gaps(angles_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted angles (n,) in [0, 360) and the gap (n,) from each to the next one (circularly)."""
+    a = np.sort(np.mod(angles_deg, 360.0))
+    if len(a) == 0:
+        return a, a
+    return a, np.diff(np.append(a, a[0] + 360.0))
+
+
+def fill_gaps(status: tuple[str, ...], azimuths_deg: np.ndarray, max_gap_deg: float = 30.0) -> tuple[str, ...]:
+    """Turn rejected frames into conservative ones until no gap between kept views exceeds ``max_gap_deg``.
+
+    Within each too-wide gap between kept frames, walking from its start, the
+    rejected frame farthest along but within ``max_gap_deg`` of the last kept
+    one is kept (the fewest frames that close the gap); where a stretch of the
+    turn has no frame at all (a half turn), the walk stops there and goes on
+    from the gap's other end. The open half of a half turn stays open.
+    """
+    out = list(status)
+    az = np.mod(np.asarray(azimuths_deg, np.float64), 360.0)
+    dropped = [i for i, s in enumerate(out) if s.startswith("rejected")]
+    kept = [i for i, s in enumerate(out) if not s.startswith("rejected")]
+    if not dropped:
+        return tuple(out)
+    if not kept:  # nothing to measure gaps from: start at the first rejected frame
+        kept = [dropped[0]]
+        out[dropped[0]] = _keep(out[dropped[0]], 360.0)
+    starts, gaps = _circular_gaps(az[kept])
+    for start, gap in zip(starts, gaps):
+        if gap <= max_gap_deg:
+            continue
+        inside = sorted(((az[j] - start) % 360.0, j) for j in dropped if 0 < (az[j] - start) % 360.0 < gap)
+        ahead = _walk(inside, gap, max_gap_deg)
+        reached = max([d for d, j in inside if j in ahead], default=0.0)
+        behind = _walk([(gap - d, j) for d, j in reversed(inside) if d > reached], gap - reached, max_gap_deg)
+        for j in ahead | behind:
+            out[j] = _keep(out[j], gap)
+    return tuple(out)
+
+
+def _walk(inside: list[tuple[float, int]], gap: float, max_gap_deg: float) -> set[int]:
+    """Frames to keep, walking from 0 towards ``gap`` over ``inside`` (sorted (offset, frame)): each step
+    the farthest frame within ``max_gap_deg``; stops at ``gap`` or where no frame is that close (a
+    stretch of the turn no frame shows: nothing to keep there)."""
+    keep, pos = set(), 0.0
+    while gap - pos > max_gap_deg:
+        near = [(d, j) for d, j in inside if pos < d <= pos + max_gap_deg]
+        if not near:
+            break
+        pos, j = near[-1]
+        keep.add(j)
+    return keep
+
+
+def _keep(status: str, gap_deg: float) -> str:
+    reason = status[len("rejected: "):] if status.startswith("rejected: ") else status
+    return f"conservative: kept although {reason} (dropping it leaves {gap_deg:.0f} deg of the turn without a view)"
+
+
+def touches_region_side(mask: np.ndarray, region: np.ndarray, width_px: int = 2) -> bool:
+    """Whether ``mask`` (H, W) reaches the boundary of ``region`` (H, W), the working volume's image,
+    away from the image border: the object may extend beyond the volume there."""
+    r8 = region.astype(np.uint8)
+    k = np.ones((2 * width_px + 1, 2 * width_px + 1), np.uint8)
+    rim = region & (cv2.erode(r8, k, borderType=cv2.BORDER_REPLICATE) == 0)
+    return int((mask & rim).sum()) >= _TOUCH_PX
