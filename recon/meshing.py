@@ -40,7 +40,8 @@ from skimage import measure
 
 from .types import TableMesh, VoxelHull
 
-__all__ = ["MeshStats", "mesh_from_hull", "finalize_mesh", "remesh_watertight", "mesh_stats"]
+__all__ = ["MeshStats", "mesh_from_hull", "finalize_mesh", "remesh_watertight", "mesh_stats", "clip_to_hull",
+           "hull_excess_mm"]
 
 log = logging.getLogger(__name__)
 
@@ -360,3 +361,57 @@ def mesh_stats(mesh: TableMesh) -> MeshStats:
                                                       min_len=1))
     return MeshStats(volume_mm3=float(tm.volume), area_mm2=float(tm.area), watertight=watertight,
                      n_faces=int(len(tm.faces)), n_vertices=int(len(tm.vertices)), n_bodies=n_bodies)
+
+
+def _hull_at(hull: VoxelHull, pts_table: np.ndarray) -> np.ndarray:
+    """Hull value (mm, > 0 inside) at table points, trilinear; outside the grid: the border's value."""
+    from scipy import ndimage
+
+    ijk = (np.asarray(pts_table, float) - np.asarray(hull.origin_table, float)) / float(hull.voxel_mm)
+    return ndimage.map_coordinates(np.asarray(hull.values, np.float32), ijk.T, order=1, mode="nearest")
+
+
+def hull_excess_mm(mesh: TableMesh, hull: VoxelHull) -> float:
+    """How far (mm) the mesh's farthest vertex lies outside the hull; 0 when none does."""
+    return float(max(0.0, -float(_hull_at(hull, mesh.vertices_table).min(initial=0.0))))
+
+
+def clip_to_hull(mesh: TableMesh, hull: VoxelHull, iters: int = 8) -> TableMesh:
+    """Move vertices that smoothing or decimation pushed outside the hull back into it.
+
+    A vertex ``v`` with hull value ``h(v) < 0`` steps along the hull's
+    gradient ``g`` (central differences of the trilinear ``h`` over half a
+    voxel): ``v += s g / |g|^2`` with ``s = -h(v)`` plus a small margin,
+    the step at most half a voxel, halved where it does not raise ``h``
+    (the sampled hull is not smooth at sub-voxel scale). ``iters`` rounds.
+    Steps are sub-voxel, so the faces are kept.
+
+    Returns
+    -------
+    TableMesh
+        Same faces and colours, moved vertices, recomputed normals.
+    """
+    V = np.asarray(mesh.vertices_table, float).copy()
+    e = 0.5 * float(hull.voxel_mm)
+    hv = _hull_at(hull, V)
+    for _ in range(int(iters)):
+        out = np.flatnonzero(hv < 0)
+        if len(out) == 0:
+            break
+        P = V[out]
+        g = np.stack([(_hull_at(hull, P + e * a) - _hull_at(hull, P - e * a)) / (2 * e) for a in np.eye(3)], 1)
+        g2 = np.maximum(np.sum(g * g, 1), 1e-6)
+        step = ((-hv[out] + 0.05 * e) / g2)[:, None] * g
+        n = np.linalg.norm(step, axis=1, keepdims=True)
+        step *= np.minimum(1.0, e / np.maximum(n, 1e-12))
+        for _ in range(4):
+            h_new = _hull_at(hull, P + step)
+            better = h_new > hv[out]
+            V[out[better]] = P[better] + step[better]
+            hv[out[better]] = h_new[better]
+            out, P, step = out[~better], P[~better], 0.5 * step[~better]
+            if len(out) == 0:
+                break
+    tm = trimesh.Trimesh(V, np.asarray(mesh.faces), process=False)
+    return TableMesh(vertices_table=V, faces=np.asarray(mesh.faces, np.int64),
+                     normals_table=np.asarray(tm.vertex_normals, np.float64), colors_rgb=mesh.colors_rgb)

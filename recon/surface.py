@@ -50,7 +50,7 @@ from scipy import ndimage
 
 from .types import DepthMap, FusedPoints, VoxelHull
 
-__all__ = ["fused_surface", "splat_depth", "compare_to_hull", "HullComparison"]
+__all__ = ["fused_field", "fused_surface", "splat_depth", "compare_to_hull", "HullComparison"]
 
 
 def splat_depth(points: FusedPoints, K: np.ndarray, T_cam_table: np.ndarray, size: tuple[int, int],
@@ -96,69 +96,87 @@ def _agreeing(zbuf: np.ndarray, dm: DepthMap, stride: int, min_confidence: float
     return np.where((own > 0) & (np.abs(zbuf - own) <= agree_mm), zbuf, 0.0).astype(np.float32)
 
 
-def _unseen_cavity(h: np.ndarray, D: np.ndarray, C: np.ndarray, voxel_mm: float, min_area_mm2: float) -> np.ndarray:
-    """Unobserved hull voxels under carved free space: a cavity no camera could look into.
+def _unseen_cavity(h: np.ndarray, D: np.ndarray, C: np.ndarray, down: np.ndarray, voxel_mm: float,
+                   min_area_mm2: float, min_views: int, min_opening_mm: float) -> np.ndarray:
+    """Unobserved hull voxels under an observed opening: a cavity no camera could look into.
 
     ``h`` hull values, ``D`` fused TSDF, ``C`` number of views that updated
-    each voxel, all on one grid whose axis 1 is table +Y (up). A voxel is
+    each voxel, ``down`` number of views *above* the voxel that saw it as
+    free space, all on one grid whose axis 1 is table +Y (up). A voxel is
     *free* where views carved it (``C > 0``, ``D < 0``) inside the hull and
-    *unseen* where no view updated it. Going down each column, an unseen
-    voxel under a free or already-filled voxel is a cavity voxel, as long as
-    its horizontal distance to the hull's outside and its height above the
-    hull's floor both exceed the wall thickness ``t`` (a low percentile of
-    that horizontal distance over the cavity's top, which reaches the
-    observed inner wall), so the cavity keeps a wall and a floor of that
-    thickness (a cup's floor is about as thick as its wall). Distances come
-    from Euclidean distance transforms of the hull's inside per horizontal
-    slice, not from the hull values, which are distances only near the
-    surface, nor in 3-D, where the hull's roof above the opening is near.
+    *unseen* where no view updated it.
+
+    The prior acts only where an opening is actually observed: a seed is an
+    unseen voxel directly under free space; a connected set of seeds acts
+    only if at least half of its footprint, and ``min_area_mm2`` of it, lies
+    under a free column that (1) reaches up to the hull's outside (the
+    opening), (2) is at least ``min_opening_mm`` deep and (3) whose lowest
+    voxel at least ``min_views`` cameras above it saw as free (they looked
+    down into it). A few voxels of noisy carving at a surface, or free space
+    seen only from below (the top of a head above every camera), start
+    nothing. Going down each column from a seed, unseen
+    voxels are cavity voxels as long as their horizontal distance to the
+    hull's outside and their height above the hull's floor both exceed the
+    wall thickness ``t`` (a low percentile of that horizontal distance over
+    the seeds), so the cavity keeps a wall and a floor of that thickness.
     Solid tops stop the descent: under an observed surface the voxels within
-    ``tau`` behind it were updated (``C > 0``, ``D >= 0``). Cavities whose top
-    covers less than ``min_area_mm2`` (holes in the observed surface of a
-    solid object) are dropped. Returns a bool mask of the voxels to treat as
-    empty.
+    ``tau`` behind it were updated (``C > 0``, ``D >= 0``). Seed components
+    whose footprint covers less than ``min_area_mm2`` are dropped. Returns a
+    bool mask of the voxels to treat as empty.
     """
     inside = h > 0
     free = inside & (C > 0) & (D < 0)
     unseen = inside & (C == 0)
+    ny = h.shape[1]
+    run = np.zeros(h.shape, np.int32)     # free voxels in a row from here up
+    opens = np.zeros(h.shape, bool)       # ... and the run reaches the hull's outside
+    run[:, -1, :] = free[:, -1, :]
+    opens[:, -1, :] = free[:, -1, :]
+    for j in range(ny - 2, -1, -1):
+        run[:, j, :] = np.where(free[:, j, :], run[:, j + 1, :] + 1, 0)
+        opens[:, j, :] = free[:, j, :] & (opens[:, j + 1, :] | ~inside[:, j + 1, :])
     seed = np.zeros_like(unseen)
     seed[:, :-1, :] = unseen[:, :-1, :] & free[:, 1:, :]
+    good = np.zeros_like(unseen)  # seeds under an observed opening
+    good[:, :-1, :] = opens[:, 1:, :] & (run[:, 1:, :] * voxel_mm >= min_opening_mm) & (down[:, 1:, :] >= min_views)
+    good &= seed
     E = np.zeros_like(unseen)
-    if not seed.any():
+    if not good.any():
         return E
     lab, n = ndimage.label(seed, structure=np.ones((3, 3, 3), bool))
-    cols = np.zeros(n + 1, np.int64)
     ii, jj, kk = np.nonzero(seed)
-    # footprint: distinct (x, z) columns per seed component
+    # footprint: distinct (x, z) columns per seed component, and those under an observed opening
     key = np.unique(np.stack([lab[ii, jj, kk], ii, kk], 1), axis=0)
-    np.add.at(cols, key[:, 0], 1)
-    big = cols * voxel_mm ** 2 >= min_area_mm2
+    cols = np.bincount(key[:, 0], minlength=n + 1)
+    sel = good[ii, jj, kk]
+    key_g = np.unique(np.stack([lab[ii, jj, kk], ii, kk], 1)[sel], axis=0)
+    cols_g = np.bincount(key_g[:, 0], minlength=n + 1)
+    # a component acts when most of its footprint lies under an observed opening of enough area
+    big = (cols_g * voxel_mm ** 2 >= min_area_mm2) & (cols_g >= 0.5 * cols)
     big[0] = False
     seed &= big[lab]
     if not seed.any():
         return E
     # lateral distance to the hull's outside, slice by slice (the grid edge counts as outside)
     lateral = np.stack([ndimage.distance_transform_edt(np.pad(inside[:, j, :], 1))[1:-1, 1:-1]
-                        for j in range(h.shape[1])], axis=1) * voxel_mm
+                        for j in range(ny)], axis=1) * voxel_mm
     t = float(np.percentile(lateral[seed], 2))
     # height above the hull's floor in each column
-    j_idx = np.arange(h.shape[1])[None, :, None]
-    floor = np.where(inside, j_idx, h.shape[1]).min(axis=1, keepdims=True)
+    j_idx = np.arange(ny)[None, :, None]
+    floor = np.where(inside, j_idx, ny).min(axis=1, keepdims=True)
     above = (j_idx - floor + 0.5) * voxel_mm
     ok = unseen & (lateral > t) & (above > t)
-    for j in range(h.shape[1] - 2, -1, -1):
+    for j in range(ny - 2, -1, -1):
         E[:, j, :] = ok[:, j, :] & (seed[:, j, :] | E[:, j + 1, :])
     return E
 
 
-def _tsdf(hull: VoxelHull, zbufs, K_sub, Ts, tau, hull_weight, delta, step, progress, cavity_prior,
-          min_cavity_mm2):
-    vals = np.asarray(hull.values, np.float32)
-    coarse = vals[::step, ::step, ::step]
-    idx = np.nonzero(coarse > -tau)
-    pts = (np.asarray(hull.origin_table, float) + np.stack(idx, 1) * step * float(hull.voxel_mm)).astype(np.float32)
+def _integrate(pts, zbufs, K_sub, Ts, tau, delta, progress):
+    """TSDF sums at ``pts`` (N, 3): sum of clipped phi, views that updated, saw free, saw free from above."""
     acc = np.zeros(len(pts), np.float32)
     cnt = np.zeros(len(pts), np.float32)
+    n_free = np.zeros(len(pts), np.int16)
+    n_down = np.zeros(len(pts), np.int16)
     for i, (zb, T) in enumerate(zip(zbufs, Ts)):
         P = (K_sub @ T[:3, :]).astype(np.float32)
         uvw = pts @ P[:, :3].T
@@ -173,17 +191,42 @@ def _tsdf(hull: VoxelHull, zbufs, K_sub, Ts, tau, hull_weight, delta, step, prog
         obs = zb[y[sel], x[sel]]
         phi = z[sel] - obs
         upd = (obs > 0) & (phi < tau)
-        sel = sel[upd]
-        acc[sel] += np.maximum(phi[upd], -tau)
-        cnt[sel] += 1.0
+        fr = upd & (phi < -delta)
+        sel_u, sel_f = sel[upd], sel[fr]
+        acc[sel_u] += np.maximum(phi[upd], -tau)
+        cnt[sel_u] += 1.0
+        n_free[sel_f] += 1
+        cam_y = float((-T[:3, :3].T @ T[:3, 3])[1])
+        n_down[sel_f[pts[sel_f, 1] < cam_y]] += 1
         if progress is not None:
             progress(i + 1, len(Ts))
+    return acc, cnt, n_free, n_down
+
+
+def _tsdf(hull: VoxelHull, zbufs, K_sub, Ts, tau, hull_weight, delta, step, progress, cavity_prior,
+          min_cavity_mm2, min_free_views, min_opening_mm):
+    vals = np.asarray(hull.values, np.float32)
+    coarse = vals[::step, ::step, ::step]
+    idx = np.nonzero(coarse > -tau)
+    pts = (np.asarray(hull.origin_table, float) + np.stack(idx, 1) * step * float(hull.voxel_mm)).astype(np.float32)
+    acc, cnt, n_free, n_down = _integrate(pts, zbufs, K_sub, Ts, tau, delta, progress)
     D = np.clip(coarse, -tau, tau)
     D[idx] = (hull_weight * D[idx] + acc) / (hull_weight + cnt)
+    # carve only on evidence: free space that min_free_views views saw as free (counted over
+    # a voxel and its neighbours, so that z-buffer gaps do not leave specks standing in it)
+    NF = np.zeros(coarse.shape, np.int16)
+    NF[idx] = n_free
+    weak = (D < 0) & (coarse > 0) & (ndimage.maximum_filter(NF, size=3) < min_free_views)
+    D[weak] = np.clip(coarse[weak], -tau, tau)
     if cavity_prior:
+        # "seen": some view saw a surface at or in front of the voxel (free-only sightings do not count)
         C = np.zeros(coarse.shape, np.float32)
-        C[idx] = cnt
-        E = _unseen_cavity(coarse, D, C, step * float(hull.voxel_mm), min_cavity_mm2)
+        C[idx] = cnt - n_free
+        C[(D < 0) & (coarse > 0)] = 1.0
+        down = np.zeros(coarse.shape, np.int16)
+        down[idx] = n_down
+        E = _unseen_cavity(coarse, D, C, down, step * float(hull.voxel_mm), min_cavity_mm2, min_free_views,
+                           min_opening_mm)
         D[E] = -tau
     fine = np.nonzero(vals > -tau)
     if step > 1:
@@ -195,13 +238,14 @@ def _tsdf(hull: VoxelHull, zbufs, K_sub, Ts, tau, hull_weight, delta, step, prog
     return F
 
 
-def fused_surface(points: FusedPoints, hull: VoxelHull, K: np.ndarray, T_cam_table: Sequence[np.ndarray] | np.ndarray,
-                  depths: Sequence[DepthMap] | None = None, *, size: tuple[int, int] | None = None,
-                  trunc_mm: float | None = None, hull_weight: float = 0.1, delta_mm: float = 1.0,
-                  tsdf_step: int | None = None, stride: int = 2, min_confidence: float = 0.2,
-                  agree_mm: float = 2.0, cavity_prior: bool = True, min_cavity_mm2: float = 100.0,
-                  progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Mesh of the hull carved and refined by the fused stereo points.
+def fused_field(points: FusedPoints, hull: VoxelHull, K: np.ndarray, T_cam_table: Sequence[np.ndarray] | np.ndarray,
+                depths: Sequence[DepthMap] | None = None, *, size: tuple[int, int] | None = None,
+                trunc_mm: float | None = None, hull_weight: float = 0.1, delta_mm: float = 1.0,
+                tsdf_step: int | None = None, stride: int = 2, min_confidence: float = 0.2,
+                agree_mm: float = 2.0, min_free_views: int = 2, cavity_prior: bool = True,
+                min_cavity_mm2: float = 100.0, min_opening_mm: float = 5.0,
+                progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+    """The hull's signed grid carved by the fused stereo points (``F <= h``).
 
     Parameters
     ----------
@@ -212,9 +256,9 @@ def fused_surface(points: FusedPoints, hull: VoxelHull, K: np.ndarray, T_cam_tab
     K : (3, 3) float64
         Intrinsics of the (H, W) images.
     T_cam_table : (V, 4, 4) float64
-        Poses of the views that saw the points.
-    depths : sequence of DepthMap, optional
-        The views' own stereo depth: a z-buffer pixel counts only where the
+        Poses of the views to integrate (any subset of those that saw the points).
+    depths : sequence of V DepthMap, optional
+        Those views' own stereo depth: a z-buffer pixel counts only where the
         view's depth (confidence >= ``min_confidence``) agrees with it within
         ``agree_mm``, which removes points seen through pinholes of the
         splat. Also gives the image size when ``size`` is not given.
@@ -226,26 +270,31 @@ def fused_surface(points: FusedPoints, hull: VoxelHull, K: np.ndarray, T_cam_tab
     hull_weight : float
         Weight of the hull prior, in views.
     delta_mm : float
-        Stereo must put the surface this far inside the hull to move it.
+        Stereo must put the surface this far inside the hull to move it; a
+        view sees a voxel as free when the voxel lies this far in front of
+        the surface it sees.
     tsdf_step : int, optional
         TSDF on every ``tsdf_step``-th hull voxel; default: the step that
         makes its voxel about 1 mm (at least 1).
     stride : int
         Pixel step of the per-view z-buffers.
+    min_free_views : int
+        Hull space is carved only where at least this many views saw it as
+        free; the cavity prior needs as many views from above its opening.
     cavity_prior : bool
-        Treat unobserved hull voxels under carved free space as empty (a
-        cavity no camera could look into; see the module docstring).
+        Treat unobserved hull voxels under an observed opening as empty (a
+        cavity no camera could look into; see :func:`_unseen_cavity`).
     min_cavity_mm2 : float
         Smallest horizontal extent of such a cavity's top; smaller ones
         (gaps in the observed surface of a solid object) are left alone.
+    min_opening_mm : float
+        Depth of observed free space the cavity's opening must show.
 
     Returns
     -------
-    vertices_table : (N, 3) float64, mm
-    faces : (M, 3) int64, counter-clockwise seen from outside
+    (Nx, Ny, Nz) float32
+        Values on the hull's grid, > 0 inside, ``<= hull.values`` everywhere.
     """
-    from .stereo import hull_mesh
-
     Ts = np.asarray(T_cam_table, dtype=np.float64).reshape(-1, 4, 4)
     if size is None:
         if not depths:
@@ -253,7 +302,7 @@ def fused_surface(points: FusedPoints, hull: VoxelHull, K: np.ndarray, T_cam_tab
         H, W = depths[0].depth_mm.shape
         size = (W, H)
     if len(points.pts_table) == 0:
-        return hull_mesh(hull)
+        return np.asarray(hull.values, np.float32).copy()
     zbufs = [splat_depth(points, K, T, size, stride) for T in Ts]
     if depths is not None:
         if len(depths) != len(Ts):
@@ -262,8 +311,22 @@ def fused_surface(points: FusedPoints, hull: VoxelHull, K: np.ndarray, T_cam_tab
     K_sub = np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(K, float)
     step = int(tsdf_step) if tsdf_step is not None else max(1, int(round(1.0 / float(hull.voxel_mm))))
     tau = float(trunc_mm) if trunc_mm is not None else max(2.0 * step * float(hull.voxel_mm), 1.5)
-    F = _tsdf(hull, zbufs, K_sub, Ts, tau, hull_weight, float(delta_mm), step, progress, bool(cavity_prior),
-              float(min_cavity_mm2))
+    return _tsdf(hull, zbufs, K_sub, Ts, tau, hull_weight, float(delta_mm), step, progress, bool(cavity_prior),
+                 float(min_cavity_mm2), int(min_free_views), float(min_opening_mm))
+
+
+def fused_surface(points: FusedPoints, hull: VoxelHull, K: np.ndarray, T_cam_table: Sequence[np.ndarray] | np.ndarray,
+                  depths: Sequence[DepthMap] | None = None, **kwargs) -> tuple[np.ndarray, np.ndarray]:
+    """Raw mesh (marching cubes, no clean-up) of :func:`fused_field`; same arguments.
+
+    Returns
+    -------
+    vertices_table : (N, 3) float64, mm
+    faces : (M, 3) int64, counter-clockwise seen from outside
+    """
+    from .stereo import hull_mesh
+
+    F = fused_field(points, hull, K, T_cam_table, depths, **kwargs)
     return hull_mesh(VoxelHull(values=F, origin_table=hull.origin_table, voxel_mm=hull.voxel_mm))
 
 

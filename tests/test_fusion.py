@@ -8,9 +8,11 @@ import pytest
 from test_stereo import SIZE, box_mesh, hull_from_masks, intrinsics, noise_texture, render, turntable_poses
 
 from recon.fusion import fuse_depths
+from recon.meshing import clip_to_hull, hull_excess_mm, mesh_from_hull, mesh_stats
+from recon.regions import choose_regions, supported_field
 from recon.stereo import depth_maps, hull_depth_range, hull_mesh
-from recon.surface import compare_to_hull, fused_surface, splat_depth
-from recon.types import DepthMap, FusedPoints
+from recon.surface import _unseen_cavity, compare_to_hull, fused_field, fused_surface, splat_depth
+from recon.types import DepthMap, FusedPoints, VoxelHull
 
 PIT_FLOOR_Y_MM = 30.0   # the dent's floor; the box top is at 50 mm
 PIT_TOL_MM = 3.0        # fused surface at the dent's centre, 2 mm voxels
@@ -169,3 +171,96 @@ def test_cavity_prior_leaves_a_visible_dent_alone(dent_scene):
     a, _ = fused_surface(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"], cavity_prior=False)
     b, _ = fused_surface(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"])
     assert len(a) == len(b) and np.abs(a - b).max() < 1e-6
+
+
+# ------------------------------------------------------------ carve only on evidence
+def test_cavity_prior_needs_an_opening_seen_from_above():
+    """A thin layer of free space at the top of a solid block starts no cavity; a deep observed pit does."""
+    vox = 1.0
+    h = np.full((30, 30, 30), -5.0, np.float32)
+    h[3:27, 2:26, 3:27] = 5.0                      # a solid block, top layer j = 25
+    D = h.copy()
+    C = np.zeros(h.shape, np.float32)
+    down = np.zeros(h.shape, np.int16)
+    # noise: one voxel of free space at the top, seen only by cameras below it
+    D[8:22, 25, 8:22] = -1.0
+    C[8:22, 25, 8:22] = 3.0
+    E = _unseen_cavity(h, D, C, down, vox, min_area_mm2=100.0, min_views=2, min_opening_mm=5.0)
+    assert not E.any()
+    # the same layer seen from above is still too shallow to be an opening
+    down[8:22, 25, 8:22] = 3
+    assert not _unseen_cavity(h, D, C, down, vox, 100.0, 2, 5.0).any()
+    # an observed pit 8 voxels deep, looked into from above: the unseen space below it empties
+    D[8:22, 18:26, 8:22] = -1.0
+    C[8:22, 18:26, 8:22] = 3.0
+    down[8:22, 18:26, 8:22] = 3
+    E = _unseen_cavity(h, D, C, down, vox, 100.0, 2, 5.0)
+    assert E[15, 17, 15] and E[15, 10, 15]
+    assert not E[15, 2, 15]                          # a floor stays
+    assert not E[3, 17, 15] and not E[26, 17, 15]    # walls stay
+
+
+def test_fused_field_never_leaves_the_hull(dent_scene):
+    s = dent_scene
+    F = fused_field(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"])
+    assert np.all(F <= s["hull"].values)
+    # points far outside the hull (a speck of bad stereo) change nothing outside it
+    rng = np.random.default_rng(5)
+    speck = FusedPoints(rng.normal((0.0, 120.0, 0.0), 2.0, (200, 3)), np.tile([0.0, 1.0, 0.0], (200, 1)),
+                        np.zeros((200, 3), np.uint8))
+    both = FusedPoints(np.vstack([s["pts"].pts_table, speck.pts_table]),
+                       np.vstack([s["pts"].normals_table, speck.normals_table]),
+                       np.vstack([s["pts"].colors_rgb, speck.colors_rgb]))
+    F2 = fused_field(both, s["hull"], s["K"], s["Ts"], s["dms"])
+    assert np.all(F2 <= s["hull"].values)
+
+
+def test_one_view_of_free_space_carves_nothing(dent_scene):
+    """Free space must be seen by several views: the dent from a single view stays hull."""
+    s = dent_scene
+    h = s["hull"].values
+    F1 = fused_field(s["pts"], s["hull"], s["K"], s["Ts"][:1], s["dms"][:1])
+    assert not np.any((h > 0) & (F1 <= 0))
+    F = fused_field(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"])
+    assert np.sum((h > 0) & (F <= 0)) * 8.0 > 0.5 * 30 * 30 * 20  # the 30x30x20 mm dent, 2 mm voxels
+
+
+def test_unjudgeable_stereo_keeps_the_hull(dent_scene):
+    s = dent_scene
+    F = fused_field(s["pts"], s["hull"], s["K"], s["Ts"][0::2], s["dms"][0::2])
+    blind = [DepthMap(d.view, d.depth_mm, np.zeros_like(d.confidence)) for d in s["dms"][1::2]]
+    ch = choose_regions(s["hull"], F, blind, s["K"], s["Ts"][1::2])
+    assert ch.n_regions > 0 and ch.n_kept == 0
+    np.testing.assert_array_equal(ch.values, s["hull"].values)
+
+
+def test_dent_kept_by_held_out_views_in_one_watertight_piece(dent_scene):
+    s = dent_scene
+    hull = s["hull"]
+    F = fused_field(s["pts"], hull, s["K"], s["Ts"][0::2], s["dms"][0::2])
+    ch = choose_regions(hull, F, s["dms"][1::2], s["K"], s["Ts"][1::2])
+    assert ch.n_kept >= 1 and ch.fused_err_mm < 0.5 * ch.hull_err_mm
+    G = supported_field(hull.values, ch.values)
+    mesh = clip_to_hull(mesh_from_hull(VoxelHull(G, hull.origin_table, hull.voxel_mm), max_faces=20000), hull)
+    st = mesh_stats(mesh)
+    assert st.watertight and st.n_bodies == 1
+    assert _top_at_pit_centre(mesh.vertices_table) == pytest.approx(PIT_FLOOR_Y_MM, abs=PIT_TOL_MM)
+    assert hull_excess_mm(mesh, hull) < OUTSIDE_TOL_MM
+
+
+OUTSIDE_TOL_MM = 0.05   # vertices may sit this far outside the hull after clipping (trilinear hull)
+
+
+def test_supported_field_fills_enclosed_voids_and_drops_cut_off_pieces():
+    h = np.full((40, 20, 20), -3.0, np.float32)
+    h[2:38, 2:18, 2:18] = 3.0                       # one hull body
+    F = h.copy()
+    F[10:13, 8:11, 8:11] = -1.0                     # a bubble no camera could see into
+    F[30] = np.minimum(F[30], -1.0)                 # a cut that severs the end x > 30
+    G = supported_field(h, F)
+    assert np.all(G <= h)
+    assert np.all(G[10:13, 8:11, 8:11] > 0)         # bubble filled
+    assert np.all(G[31:38] <= 0)                    # the severed small piece is gone
+    assert np.all(G[3:29, 3:17, 3:17] > 0)          # the big piece stays
+    with pytest.raises(ValueError):
+        supported_field(h, F[:-1])

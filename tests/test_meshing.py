@@ -8,7 +8,7 @@ import pytest
 import trimesh
 
 from recon.colorize import color_vertices, visible_vertices
-from recon.meshing import finalize_mesh, mesh_from_hull, mesh_stats, remesh_watertight
+from recon.meshing import clip_to_hull, finalize_mesh, hull_excess_mm, mesh_from_hull, mesh_stats, remesh_watertight
 from recon.types import TableMesh, VoxelHull
 
 VOLUME_REL_TOL = 0.01  # relative volume error
@@ -266,3 +266,21 @@ def test_decimation_that_opens_the_mesh_falls_back_to_a_watertight_remesh(monkey
     assert calls == [2000]
     assert stats.watertight and 500 < stats.n_faces <= 2000
     assert abs(stats.volume_mm3 / (4 / 3 * np.pi * 20.0**3) - 1) < 0.03
+
+
+CLIP_TOL_MM = 0.01  # how far outside the hull a clipped vertex may stay (exact sphere distance)
+
+
+def test_clip_to_hull_pulls_decimated_vertices_back_inside():
+    R, centre, voxel = 15.0, (1.0, 20.0, -2.0), 1.0
+    hull = sphere_hull(R, voxel, centre)
+    mesh = mesh_from_hull(hull, max_faces=800)  # coarse decimation: vertices leave the sphere
+    assert hull_excess_mm(mesh, hull) > 5 * CLIP_TOL_MM
+    clipped = clip_to_hull(mesh, hull)
+    assert hull_excess_mm(clipped, hull) < CLIP_TOL_MM
+    np.testing.assert_array_equal(clipped.faces, mesh.faces)
+    assert mesh_stats(clipped).watertight
+    # only vertices that were outside moved, and by less than a voxel
+    move = np.linalg.norm(clipped.vertices_table - mesh.vertices_table, axis=1)
+    assert move.max() < voxel
+    assert np.all(move[radii(mesh, centre) <= R - 1e-6] == 0)

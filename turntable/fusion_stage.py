@@ -1,9 +1,18 @@
 """The point-fusion stage: per-view stereo depth -> fused points -> hull-aware surface.
 
-Wires :mod:`recon.stereo`, :mod:`recon.fusion` and :mod:`recon.surface`, and
-decides whether the fused surface replaces the hull mesh
-(:func:`recon.surface.compare_to_hull`: the mesh that agrees better with the
-confident stereo depth where the two differ).
+Wires :mod:`recon.stereo`, :mod:`recon.fusion`, :mod:`recon.surface` and
+:mod:`recon.regions`:
+
+1. stereo depth for every view, fused into consistent points (all views);
+2. the hull's grid carved by those points as seen from the even views only
+   (:func:`recon.surface.fused_field`: carving needs several views that saw
+   free space, the cavity prior an observed opening);
+3. each carved region judged on the odd views' stereo depth, which step 2
+   did not use (:func:`recon.regions.choose_regions`); unconfirmed or
+   unjudged regions keep the hull;
+4. enclosed voids filled, carved-off fragments dropped
+   (:func:`recon.regions.supported_field`), meshed like the hull, and every
+   vertex clipped back into the hull (:func:`recon.meshing.clip_to_hull`).
 """
 
 from __future__ import annotations
@@ -21,11 +30,17 @@ __all__ = ["run_fusion"]
 
 def run_fusion(images_rgb, masks, K: np.ndarray, T_cam_table: np.ndarray, hull: VoxelHull, hull_mesh: TableMesh,
                opts, progress) -> tuple[TableMesh, FusedPoints, str]:
-    """Returns (mesh to colour and export, fused points, a one-line note for the summary)."""
+    """Returns (mesh to colour and export, fused points, a one-line note for the summary).
+
+    The mesh is the hull mesh unless some region of the fused surface was
+    confirmed by held-out views; check :func:`recon.meshing.mesh_stats` for
+    watertightness and bodies either way.
+    """
     from recon.fusion import fuse_depths
-    from recon.meshing import finalize_mesh
+    from recon.meshing import clip_to_hull, mesh_from_hull, mesh_stats
+    from recon.regions import choose_regions, supported_field
     from recon.stereo import depth_maps, hull_depth_range
-    from recon.surface import compare_to_hull, fused_surface
+    from recon.surface import fused_field
 
     H, W = images_rgb[0].shape[:2]
     with progress.stage("stereo") as tick:
@@ -35,15 +50,30 @@ def run_fusion(images_rgb, masks, K: np.ndarray, T_cam_table: np.ndarray, hull: 
         fused = fuse_depths(depths, images_rgb, K, T_cam_table, progress=tick)
     if len(fused.pts_table) == 0:
         return hull_mesh, fused, "hull kept: stereo found no consistent points"
+    if len(T_cam_table) < 4:
+        return hull_mesh, fused, "hull kept: too few views to hold any out for judging the fused surface"
     with progress.stage("surface") as tick:
-        v, f = fused_surface(fused, hull, K, T_cam_table, depths, size=(W, H), progress=tick)
-        mesh = finalize_mesh(v, f, opts.max_faces)
-        # judged on every other view's depth (fusion used all; a partial hold-out)
-        cmp = compare_to_hull((hull_mesh.vertices_table, hull_mesh.faces), (mesh.vertices_table, mesh.faces),
-                              depths[1::2], K, T_cam_table[1::2])
-        detail = (f"{len(fused.pts_table)} fused points; where hull and fused surface differ "
-                  f"({cmp.n_pixels} px) stereo agrees with the fused surface to {cmp.fused_err_mm:.2f} mm, "
-                  f"with the hull to {cmp.hull_err_mm:.2f} mm")
-    if not cmp.use_fused:
-        return hull_mesh, fused, f"hull kept: {detail}"
-    return mesh, fused, f"fused surface replaces the hull: {detail}"
+        F = fused_field(fused, hull, K, T_cam_table[0::2], depths[0::2], size=(W, H), progress=tick)
+        choice = choose_regions(hull, F, depths[1::2], K, T_cam_table[1::2])
+    n_pts = len(fused.pts_table)
+    if choice.n_kept == 0:
+        why = ("stereo carved nothing" if choice.n_regions == 0 else
+               f"none of {choice.n_regions} carved regions ({choice.rejected_mm3 / 1000:.1f} cm³) was confirmed "
+               f"by held-out views ({choice.n_unjudged} too little seen to judge)")
+        return hull_mesh, fused, f"hull kept: {n_pts} fused points; {why}"
+    with progress.stage("fused mesh"):
+        F = supported_field(hull.values, choice.values)
+        mesh = mesh_from_hull(VoxelHull(values=F, origin_table=hull.origin_table, voxel_mm=hull.voxel_mm),
+                              max_faces=opts.max_faces)
+        mesh = clip_to_hull(mesh, hull)
+    st, sh = mesh_stats(mesh), mesh_stats(hull_mesh)
+    if not st.watertight:
+        log.warning("the fused mesh is not watertight; keeping the hull mesh")
+        return hull_mesh, fused, f"hull kept: the fused mesh could not be made watertight ({n_pts} fused points)"
+    share = 100.0 * choice.kept_mm3 / max(choice.kept_mm3 + choice.rejected_mm3, 1e-9)
+    note = (f"fused surface kept in {choice.n_kept} of {choice.n_regions} carved regions "
+            f"({choice.kept_mm3 / 1000:.1f} cm³ carved, {share:.0f} % of what stereo carved), hull elsewhere "
+            f"({choice.n_unjudged} regions too little seen to judge); on {choice.n_pixels} held-out stereo pixels "
+            f"there, error {choice.fused_err_mm:.2f} mm fused vs {choice.hull_err_mm:.2f} mm hull; "
+            f"volume {st.volume_mm3 / max(sh.volume_mm3, 1e-9):.2f} x the hull's; {n_pts} fused points")
+    return mesh, fused, note
