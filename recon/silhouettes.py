@@ -172,6 +172,7 @@ def _shadow_dist(img: np.ndarray, plate: np.ndarray) -> np.ndarray:
     return np.abs(i - g[..., None] * p).max(axis=-1)
 
 
+_PLAIN_ROOM = 0.05  # a room whose colours fill less than this share of the RGB cube is "plain"
 _BIN = 8  # colour-set bins: 8 DN per channel (32^3 bins), one bin of slack around each seen colour
 
 
@@ -233,6 +234,7 @@ class _Plates:
         # coloured body of revolution looks the same in every frame): trust it as background only
         # where its colour is one the surroundings show outside the cylinder.
         self.room = _Plate(room, lo, hi, agree >= _TRUST, agree >= _STRONG)
+        self.room_colours = room_colours
         verified = ~inside | _in_set(room, room_colours)
         self.room_verified = _Plate(room, lo, hi, self.room.trust & verified, self.room.strong & verified)
         self.plane_radius = radius_mm + _PLATE_BORDER_MM
@@ -272,7 +274,7 @@ class _Evidence:
     usable: np.ndarray  # bool: where ``background`` is meaningful
 
 
-def _initial_labels(img, region, room: _Plate, table: _Plate, tau) -> _Evidence:
+def _initial_labels(img, region, room: _Plate, table: _Plate, tau, room_colours) -> _Evidence:
     """GrabCut labels from the plates, and what each pixel's plates say (:class:`_Evidence`).
 
     Where the table plate is trusted it alone decides: it shows the plane point
@@ -294,7 +296,14 @@ def _initial_labels(img, region, room: _Plate, table: _Plate, tau) -> _Evidence:
     labels = np.full(img.shape[:2], cv2.GC_PR_FGD, np.uint8)
     labels[explained | shadow] = cv2.GC_PR_BGD
     labels[cv2.erode(hard.astype(np.uint8), k3) > 0] = cv2.GC_BGD  # a plate explains the whole neighbourhood
-    labels[trusted & (d > 3.0 * tau) & ~shadow] = cv2.GC_FGD
+    # A sure object seed must not have a colour a plain room shows elsewhere: a plate polluted by
+    # the object in many frames disagrees with the plain backdrop it hides (real photos). A room
+    # of many colours (clutter) says little by its colours; an unknown one (the volume fills the
+    # image) is taken as all colours.
+    sure = trusted & (d > 3.0 * tau) & ~shadow
+    if room_colours.mean() < _PLAIN_ROOM or room_colours.all():
+        sure &= ~_in_set(img, room_colours)
+    labels[sure] = cv2.GC_FGD
     labels[~region] = cv2.GC_BGD
     background = np.where(table.trust[..., None], table.mid, room.mid)
     usable = table.trust | (room.trust & ~table.trust)
@@ -404,14 +413,16 @@ def _object_colour_near(img: np.ndarray, mask: np.ndarray, size: int = 11) -> tu
 
 
 def _outline_support(img, mask, ev: _Evidence, tau) -> float:
-    """Fraction of the ring two pixels outside the outline that looks like background.
+    """Fraction of the ring two pixels outside the outline that is clearly background.
 
-    Where a plate is trusted, the pixel must match it (or a shadow of it).
-    Where none is (the object covers those pixels in most frames, so no plate
-    knows what lies behind them: typical right next to the object on real
-    photos), the outline must sit on an edge: the pixel must differ by more
-    than ``3 tau`` from the object's colour just inside. "No plate knows" is
-    not evidence against the outline.
+    A ring pixel supports the outline when it differs by more than ``3 tau``
+    from the object's colour just inside (the outline sits on an edge) and,
+    where a plate is trusted, also matches it (or a shadow of it). A pixel
+    like the object next to it is ambiguous even where it matches a plate: a
+    white object on white paper matches the paper. Where no plate is trusted
+    (the object covers those pixels in most frames, so no plate knows what
+    lies behind them: typical right next to the object on real photos), the
+    edge alone decides: "no plate knows" is no evidence against the outline.
     """
     m8 = mask.astype(np.uint8)
     ring = (cv2.dilate(m8, np.ones((5, 5), np.uint8)) > 0) & (cv2.dilate(m8, np.ones((3, 3), np.uint8)) == 0)
@@ -419,20 +430,19 @@ def _outline_support(img, mask, ev: _Evidence, tau) -> float:
         return 0.0
     F, has_F = _object_colour_near(img, mask)
     edge = has_F & (np.abs(img.astype(np.float32) - F).max(axis=-1) > 3.0 * tau)
-    supported = np.where(ev.trusted, ev.explained | ev.shadow, edge)
+    supported = edge & (ev.explained | ev.shadow | ~ev.trusted)
     return float(supported[ring].mean())
 
 
 def _doubtful(img, mask, region, ev: _Evidence) -> np.ndarray:
     """(h, w) bool: pixels of the region outside the mask that are not confidently background.
 
-    Confident background: a trusted plate matches the pixel itself (a mere
-    darker copy of the plate — a shadow — could also be a dull side of a
-    pale object), or no plate is trusted and the pixel's colour is none the
-    object shows.
+    Confident background has a colour none of the object's, and a trusted
+    plate matches it where one is trusted. A mere darker copy of the plate (a
+    shadow) is not enough: it could be the dull side of a pale object.
     """
     object_colours = _colour_set(img[mask], min_count=3) if mask.sum() >= 50 else np.zeros((32,) * 3, bool)
-    confident = np.where(ev.trusted, ev.explained, ~_in_set(img, object_colours))
+    confident = ~_in_set(img, object_colours) & (ev.explained | ~ev.trusted)
     return region & ~mask & ~confident
 
 
@@ -451,7 +461,7 @@ def _frame_mask(img, region, base, plates: _Plates, T, tau, verified: bool) -> _
     """
     h, w = img.shape[:2]
     room = plates.room_verified if verified else plates.room
-    ev = _initial_labels(img, region, room, plates.table_in_frame(T, (h, w)), tau)
+    ev = _initial_labels(img, region, room, plates.table_in_frame(T, (h, w)), tau, plates.room_colours)
     prob = _grabcut(img, ev.labels)
     scale = math.sqrt(h * w / _WORK_PX)
     mask = _refine_outline(prob, ev.explained, ev.disagrees, band_px=max(2, int(math.ceil(scale)) + 1)) & region
