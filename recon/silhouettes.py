@@ -2,25 +2,30 @@
 
 What calibration knows replaces a global threshold:
 
-* **Where the object can be.** It stands on the target, inside the vertical
-  cylinder of radius ``spec.extent_mm`` (+ a margin) above the table. The
-  cylinder's image is the convex hull of its projected bottom and top circles;
-  every pixel outside it is background for sure.
+* **Where the object can be.** It stands on the table, inside the vertical
+  cylinder of radius ``spec.extent_mm`` (+ a margin) above the table, or the
+  working volume the caller gives (``radius_mm``, ``height_mm``: real photos
+  have no target). The cylinder's image is the convex hull of its projected
+  bottom and top circles; every pixel outside it is background for sure.
 * **Two background plates.** The camera does not move, so the room (backdrop,
   table top, surroundings) is static in the image: the per-pixel median over
   frames is a *room plate*. The turntable disc and the printed target turn
   with the table, so they are static in the table frame: every frame is
   rectified onto the plane ``Y = 0`` with the plane homography and the median
   over frames there is a *table plate* (angle marks, paper, disc), warped back
-  into each frame. The object is static in neither: above the plane it moves
-  in the rectified frames by parallax, and it turns in the image. A plate is
-  trusted at a pixel where most frames agree with it.
+  into each frame. A textured object is static in neither: above the plane it
+  moves in the rectified frames by parallax, and it turns in the image. A
+  plate is trusted at a pixel where most frames agree with it. A plain body of
+  revolution is static in the image too (the same picture in every frame):
+  when many frames fail their checks, a second pass trusts the room plate
+  inside the volume only where it shows colours the room shows outside it.
 * **Per-frame evidence.** Where the table plate is trusted it alone decides
   (an object covering the same pixels in most frames makes the room plate
   look like itself, but not the plane behind it); the room plate decides
   elsewhere. A pixel agreeing with a trusted plate (or with a darker copy of
-  it: a shadow) is background, one far from it is object; pixels no plate
-  explains are left to the colour models.
+  it: a shadow) is background, one far from it is object (unless a plain
+  room shows its colour elsewhere); pixels no plate explains are left to the
+  colour models.
 * **Refinement.** GrabCut (colour GMMs + graph cut) starts from that labelling
   on the cylinder's bounding box at reduced resolution; back at full
   resolution the outline pixels are decided by their coverage ``alpha`` between
@@ -28,9 +33,16 @@ What calibration knows replaces a global threshold:
   ground truth's convention for blended pixels). Then the big components that
   touch the base region are kept and small holes filled.
 
-Each frame is then checked for plausibility (empty, touching the image border
-along a long stretch, area jumping against its neighbours, mostly undecided)
-and flagged in ``status``; the caller leaves flagged frames out.
+**Three states.** Besides the mask, each frame has *unknown* pixels: not
+confidently background (a colour the object shows, or a plate matched only
+as a shadow). Carving with ``mask | unknown`` rejects a voxel only where a
+view is sure. Each frame is checked (empty, touching the image border along a
+long stretch, area jumping against its neighbours, outline support: the ring
+just outside the outline must sit on an edge and match a trusted plate where
+there is one) and kept as ``"ok"``, kept as ``"conservative: ..."`` with every
+doubtful pixel unknown, or ``"rejected: ..."`` (see
+:mod:`recon.silhouette_checks`, which also keeps rejected frames where
+dropping them would leave more than 30 deg of the turn without a view).
 """
 
 from __future__ import annotations
