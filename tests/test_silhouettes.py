@@ -123,7 +123,10 @@ def test_empty_frame_is_flagged_not_fatal(sequence):
     imgs = imgs.copy()
     imgs[4] = 0  # a black frame: lens cap, failed capture
     res = estimate_silhouettes(imgs, K, T, SPEC)
-    assert res.status[4] != "ok"
+    # frames are 30 deg apart: dropping frame 4 would leave 60 deg without a view, so it is kept
+    # conservatively, and carving with mask | unknown cannot eat the object there
+    assert res.status[4].startswith("conservative: "), res.status[4]
+    assert (gt[4] & ~(res.masks[4] | res.unknown[4])).sum() == 0
     assert [s for i, s in enumerate(res.status) if i != 4].count("ok") >= 10
     assert np.median([_iou(res.masks[i], gt[i]) for i in range(12) if i != 4]) >= 0.97
 
@@ -170,16 +173,6 @@ def test_three_states_are_disjoint_and_ok_frames_have_a_thin_unknown(sequence):
         if s == "ok":  # only doubtful pixels on the outline: far less than the object
             assert res.unknown[i].sum() < 0.2 * res.masks[i].sum(), (i, res.unknown[i].sum())
     assert res.touches_volume.shape == (12,) and not res.touches_volume.any()
-
-
-def test_black_frame_is_kept_conservatively_when_dropping_it_leaves_a_gap(sequence):
-    imgs, gt, T = sequence
-    imgs = imgs.copy()
-    imgs[4] = 0  # frames are 30 deg apart: dropping frame 4 leaves 60 deg without a view
-    res = estimate_silhouettes(imgs, K, T, SPEC)
-    assert res.status[4].startswith("conservative: "), res.status[4]
-    covered = (gt[4] & (res.masks[4] | res.unknown[4])).sum() / gt[4].sum()
-    assert covered == 1.0, covered  # carving with mask | unknown cannot eat the object
 
 
 def test_fill_gaps_keeps_no_gap_over_30_deg():
