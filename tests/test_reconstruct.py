@@ -296,3 +296,14 @@ def test_silhouettes_confined_to_a_small_volume_touch_its_side_and_top(scene):
     assert len(side) == 12 and top == []
     side, top = touches(60.0, 80.0)
     assert side == [] and len(top) == 12
+
+
+def test_given_masks_are_trusted_by_default(scene, tmp_path):
+    # --masks: a voxel any one mask rejects is carved (as --max-rejections 0); --max-rejections 1 keeps more
+    vols = {}
+    for tag, extra in (("default", ()), ("zero", ("--max-rejections", "0")), ("one", ("--max-rejections", "1"))):
+        out = tmp_path / tag
+        assert main(_known_cameras_args(scene, out, *extra)) == 0
+        vols[tag] = json.loads((out / "summary.json").read_text())["mesh"]["volume_cm3"]
+    assert vols["default"] == pytest.approx(vols["zero"], rel=1e-9)
+    assert vols["one"] > 1.02 * vols["zero"], vols

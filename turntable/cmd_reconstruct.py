@@ -25,8 +25,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--resolution", type=int, default=256, metavar="N", help="carving grid resolution (default 256)")
     parser.add_argument("--max-faces", type=int, default=100_000, metavar="N", help="decimate to at most N faces")
     parser.add_argument("--every", type=int, default=1, metavar="N", help="use every N-th frame (videos, dense folders)")
-    parser.add_argument("--max-rejections", type=int, default=1, metavar="K",
-                        help="a voxel survives if at most K silhouettes reject it (default 1)")
+    parser.add_argument("--max-rejections", type=int, default=None, metavar="K",
+                        help="a voxel survives if at most K silhouettes reject it (default: 0 with --masks, whose "
+                             "silhouettes are trusted; 1 with automatic ones, so that one view's mistake cannot cut "
+                             "the object)")
     parser.add_argument("--no-fusion", action="store_true", help="keep the visual hull only (no stereo)")
     parser.add_argument("--export-colmap", action="store_true", help="also write a COLMAP text model to OUT/colmap")
     parser.add_argument("--export-nerfstudio", action="store_true", help="also write OUT/transforms.json")

@@ -60,7 +60,7 @@ class ReconstructOptions:
     spawn: bool = False
     export_colmap: bool = False
     export_nerfstudio: bool = False
-    max_rejections: int = 1
+    max_rejections: int | None = None  # None: 0 with masks_dir (trusted), 1 with automatic silhouettes
 
 
 @dataclass
@@ -232,6 +232,14 @@ def _silhouette_verdicts(names, status) -> tuple[list[int], dict[str, str], dict
     return keep, rejected, conservative
 
 
+def _max_rejections(opts: ReconstructOptions) -> int:
+    """Views that may reject a voxel before it is carved: the user's masks are trusted (0); automatic
+    silhouettes may err in a view (1), their doubtful pixels are carried by ``unknown`` besides."""
+    if opts.max_rejections is not None:
+        return int(opts.max_rejections)
+    return 0 if opts.masks_dir is not None else 1
+
+
 def _stage_hull(masks, K, Ts, opts, cache, key, progress, vol):
     from recon.types import VoxelHull
 
@@ -245,7 +253,7 @@ def _stage_hull(masks, K, Ts, opts, cache, key, progress, vol):
     with progress.stage("carving") as tick:
         try:
             hull = carve_hull(masks, K, Ts, radius_mm=vol.radius_mm, height_mm=vol.height_mm,
-                              resolution=opts.resolution, max_rejections=min(opts.max_rejections, len(masks) - 1),
+                              resolution=opts.resolution, max_rejections=min(_max_rejections(opts), len(masks) - 1),
                               progress=tick)
         except ValueError as exc:
             raise UserError(f"{opts.input}: carving: {exc}") from None
@@ -266,7 +274,7 @@ def _silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progre
         vol = initial_volume(K, Ts, (W, H), None if opts.spec is None else opts.spec.extent_mm)
     except ValueError as exc:
         raise UserError(f"{opts.cameras or opts.input}: {exc}") from None
-    vol_key = stage_key(sil_key, vol.key(), opts.resolution, opts.max_rejections)
+    vol_key = stage_key(sil_key, vol.key(), opts.resolution, _max_rejections(opts))
     hit = cache.load("volume", vol_key)
     grown: list[str] = [str(g) for g in hit["grown"]] if hit is not None else []
     if hit is not None:
@@ -275,7 +283,7 @@ def _silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progre
     clipped: list[str] = []
 
     def carve(sil, keep, key, vol):
-        hull_key = stage_key(key, keep, opts.resolution, opts.max_rejections, vol.key())
+        hull_key = stage_key(key, keep, opts.resolution, _max_rejections(opts), vol.key())
         return _stage_hull(sil.masks[keep] | sil.unknown[keep], K, Ts[keep], opts, cache, hull_key, progress, vol)
 
     sil, sil_for = None, None
