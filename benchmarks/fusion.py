@@ -14,7 +14,11 @@ elevation, 36 views 10 deg apart.
 Measures (Middlebury-style for points):
 - Chamfer: symmetric mean surface distance (mm) to the GT mesh, 100k area
   samples each way, for the hull mesh (``recon.meshing.mesh_from_hull``) and
-  the fused mesh (``recon.surface.fused_surface`` + ``finalize_mesh``).
+  the fused mesh as the fusion stage makes it (``recon.surface.fused_field``
+  on the even views, ``recon.regions.choose_regions`` on the odd ones,
+  ``supported_field``, ``mesh_from_hull``, ``clip_to_hull``).
+- regions kept (of those stereo carved), bodies, watertight, and how far the
+  fused mesh's farthest vertex lies outside the hull.
 - accuracy: distance (mm) within which 90 % of fused points lie to the GT.
 - completeness: share of GT surface samples seen by >= 2 views (front-facing,
   unoccluded) with a fused point within 1.25 mm.
@@ -39,9 +43,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from recon.carving import carve_hull  # noqa: E402
 from recon.fusion import fuse_depths  # noqa: E402
-from recon.meshing import finalize_mesh, mesh_from_hull  # noqa: E402
+from recon.meshing import clip_to_hull, hull_excess_mm, mesh_from_hull, mesh_stats  # noqa: E402
+from recon.regions import choose_regions, supported_field  # noqa: E402
 from recon.stereo import depth_maps, hull_depth_range, pixel_rays_table  # noqa: E402
-from recon.surface import compare_to_hull, fused_surface  # noqa: E402
+from recon.surface import fused_field  # noqa: E402
+from recon.types import VoxelHull  # noqa: E402
 
 SIZE = (1280, 960)
 FOCAL_PX = 1600.0
@@ -158,13 +164,14 @@ def run_object(name, imgs, masks, K, Ts, gt):
     t2 = time.perf_counter()
     pts = fuse_depths(dms, imgs, K, Ts)
     t3 = time.perf_counter()
-    fv, ff = fused_surface(pts, hull, K, Ts, dms)
+    F = fused_field(pts, hull, K, Ts[0::2], dms[0::2], size=SIZE)  # the fusion stage: even views carve,
+    choice = choose_regions(hull, F, dms[1::2], K, Ts[1::2], masks[1::2])  # odd views judge each region
+    G = supported_field(hull.values, choice.values)
+    fused_tm = clip_to_hull(mesh_from_hull(VoxelHull(G, hull.origin_table, hull.voxel_mm)), hull)
     t4 = time.perf_counter()
-    fused_tm = finalize_mesh(fv, ff, 100_000)
+    st = mesh_stats(fused_tm)
     hull_mesh_t = trimesh.Trimesh(hull_tm.vertices_table, hull_tm.faces, process=False)
     fused_mesh_t = trimesh.Trimesh(fused_tm.vertices_table, fused_tm.faces, process=False)
-    cmp = compare_to_hull((hull_tm.vertices_table, hull_tm.faces), (fused_tm.vertices_table, fused_tm.faces),
-                          dms[1::2], K, Ts[1::2])
     d_pts = _scene_cast(gt).compute_distance(o3d.core.Tensor(pts.pts_table.astype(np.float32))).numpy()
     vis = visible_gt_samples(gt, K, Ts)
     tree = o3d.geometry.KDTreeFlann(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts.pts_table)))
@@ -172,7 +179,8 @@ def run_object(name, imgs, masks, K, Ts, gt):
     return dict(name=name, ch_hull=chamfer(hull_mesh_t, gt), ch_fused=chamfer(fused_mesh_t, gt),
                 acc90=float(np.percentile(d_pts, 90)) if len(d_pts) else float("nan"), comp=float(comp),
                 n_pts=len(pts.pts_table), t_range=t1 - t0, t_depth=t2 - t1, t_fuse=t3 - t2, t_surf=t4 - t3,
-                use_fused=cmp.use_fused, err_h=cmp.hull_err_mm, err_f=cmp.fused_err_mm, voxel=hull.voxel_mm)
+                kept=f"{choice.n_kept}/{choice.n_regions}", bodies=st.n_bodies, watertight=st.watertight,
+                outside=hull_excess_mm(fused_tm, hull), voxel=hull.voxel_mm)
 
 
 def main() -> int:
@@ -185,8 +193,9 @@ def main() -> int:
           f"{platform.machine()} {platform.processor() or ''}, {os.cpu_count()} CPUs, python {platform.python_version()}")
     print()
     print("| object | hull voxel mm | Chamfer hull mm | Chamfer fused mm | fused/hull | pts acc90 mm | "
-          "completeness @1.25 mm | points | range s | depth s | fuse s | surface s | stage s | decision (err hull/fused mm) |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "completeness @1.25 mm | points | range s | depth s | fuse s | surface s | stage s | regions kept | "
+          "bodies | watertight | outside hull mm |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name in args.objects:
         data = load_synth(args.data / name) if args.data else render_own(name, args.views)
         r = run_object(name, *data)
@@ -194,7 +203,7 @@ def main() -> int:
         print(f"| {name} | {r['voxel']:.2f} | {r['ch_hull']:.3f} | {r['ch_fused']:.3f} | "
               f"{r['ch_fused'] / r['ch_hull']:.2f} | {r['acc90']:.3f} | {100 * r['comp']:.1f} % | {r['n_pts']} | "
               f"{r['t_range']:.1f} | {r['t_depth']:.1f} | {r['t_fuse']:.1f} | {r['t_surf']:.1f} | {stage:.1f} | "
-              f"{'fused' if r['use_fused'] else 'hull'} ({r['err_h']:.2f}/{r['err_f']:.2f}) |", flush=True)
+              f"{r['kept']} | {r['bodies']} | {r['watertight']} | {r['outside']:.3f} |", flush=True)
     return 0
 
 

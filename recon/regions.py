@@ -16,8 +16,8 @@ at a point of the region and where the two surfaces differ by more than
 
 A region stays carved when at least ``min_pixels`` such pixels judged it,
 its mean fused error is below ``margin`` times the hull's, and hardly any
-held-out pixel sees through it where the hull is hit (a cut through the
-object that the silhouettes contradict); everywhere else
+held-out pixel sees through it where its silhouette or its stereo saw the
+object (a cut through the object); everywhere else
 the hull stands (``F = h``), so stereo that cannot be judged never carves.
 
 :func:`supported_field` then keeps only what the silhouettes support: space
@@ -86,7 +86,7 @@ def _region_labels(carved: np.ndarray, voxel_mm: float, region_mm: float) -> tup
     return out, int(lab.max()) + 1
 
 
-def _judge(labels, n, hull, hull_vf, fused_vf, depths, K, Ts, min_confidence, delta_mm, cap_mm, stride):
+def _judge(labels, n, hull, hull_vf, fused_vf, depths, masks, K, Ts, min_confidence, delta_mm, cap_mm, stride):
     """Per region (arrays of n + 1): summed hull error, summed fused error, judged pixels, see-through pixels."""
     from .stereo import pixel_rays_table
     from .surface import _render_depth
@@ -94,13 +94,18 @@ def _judge(labels, n, hull, hull_vf, fused_vf, depths, K, Ts, min_confidence, de
     near = ndimage.maximum_filter(labels, size=5)  # a hull hit lies within a voxel or two of its region
     Ks = np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(K, float)
     origin, vox = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
-    e_h, e_f, cnt, n_through = np.zeros(n + 1), np.zeros(n + 1), np.zeros(n + 1), np.zeros(n + 1)
-    for dm, T in zip(depths, Ts):
+    e_h, e_f, cnt, n_through = (np.zeros(n + 1) for _ in range(4))
+    for dm, T, m in zip(depths, Ts, masks if masks is not None else [None] * len(Ts)):
         d = np.where(dm.confidence >= min_confidence, dm.depth_mm, 0.0)[::stride, ::stride]
         size = (d.shape[1], d.shape[0])
         r_h = _render_depth(*hull_vf, Ks, T, size)
         r_f = _render_depth(*fused_vf, Ks, T, size)
-        through = (r_h > 0) & (r_f == 0)  # the fused surface lets this view see through the silhouette
+        # the fused surface lets this view see through where its silhouette or its stereo saw the
+        # object (the hull alone is no proof: it can be larger than every silhouette)
+        seen = d > 0
+        if m is not None:
+            seen = seen | np.asarray(m, bool)[::stride, ::stride][:seen.shape[0], :seen.shape[1]]
+        through = seen & (r_h > 0) & (r_f == 0)
         sel = ((d > 0) & (r_h > 0) & (r_f - r_h > delta_mm)) | through
         if not sel.any():
             continue
@@ -113,7 +118,6 @@ def _judge(labels, n, hull, hull_vf, fused_vf, depths, K, Ts, min_confidence, de
         lab[ok] = near[tuple(ijk[ok].T)]
         dd, rh, rf, th = d[sel], r_h[sel], r_f[sel], through[sel]
         np.add.at(n_through, lab[th], 1)
-        lab, dd, rh, rf = lab[dd > 0], dd[dd > 0], rh[dd > 0], rf[dd > 0]
         np.add.at(e_h, lab, np.minimum(np.abs(rh - dd), cap_mm))
         np.add.at(e_f, lab, np.where(rf > 0, np.minimum(np.abs(rf - dd), cap_mm), cap_mm))
         np.add.at(cnt, lab, 1)
@@ -121,7 +125,8 @@ def _judge(labels, n, hull, hull_vf, fused_vf, depths, K, Ts, min_confidence, de
 
 
 def choose_regions(hull: VoxelHull, values: np.ndarray, depths: Sequence[DepthMap], K: np.ndarray,
-                   T_cam_table: Sequence[np.ndarray] | np.ndarray, *, region_mm: float = 15.0,
+                   T_cam_table: Sequence[np.ndarray] | np.ndarray, masks: Sequence[np.ndarray] | None = None, *,
+                   region_mm: float = 15.0,
                    min_confidence: float = 0.5, delta_mm: float = 1.0, cap_mm: float = 10.0,
                    margin: float = 0.8, min_pixels: int = 20, max_through: float = 0.01,
                    smooth_vox: float = 1.0, stride: int = 4) -> RegionChoice:
@@ -138,15 +143,17 @@ def choose_regions(hull: VoxelHull, values: np.ndarray, depths: Sequence[DepthMa
         Intrinsics of the depth maps' (H, W) images.
     T_cam_table : (V, 4, 4) float64
         Their poses.
+    masks : sequence of V (H, W) bool, optional
+        Those views' silhouettes (see ``max_through``).
     region_mm : float
         Edge of the cubes that cut carved components into regions.
     min_confidence, delta_mm, cap_mm, margin, min_pixels, stride
         See the module docstring; ``stride`` is the pixel step of the test.
     max_through : float
         A region is rejected when, in the held-out views, more pixels than
-        this fraction of its judged ones see through it where the hull (the
-        silhouettes) says there is object: carving must not cut the object
-        through where a camera saw it whole.
+        this fraction of its judged ones see through it where their
+        silhouette or their stereo saw the object: carving must not cut the
+        object through where a camera saw it whole.
     smooth_vox : float
         Gaussian sigma (voxels) smoothing the kept fused surface against
         stereo noise (the field clipped to two voxels each side of its zero
@@ -171,7 +178,9 @@ def choose_regions(hull: VoxelHull, values: np.ndarray, depths: Sequence[DepthMa
     if n == 0:
         return RegionChoice(h.copy(), 0, 0, 0, 0.0, 0.0, nan, nan, 0)
     fused = VoxelHull(values=F, origin_table=hull.origin_table, voxel_mm=hull.voxel_mm)
-    e_h, e_f, cnt, n_through = _judge(labels, n, hull, hull_mesh(hull), hull_mesh(fused), depths, K, Ts,
+    if masks is not None and len(masks) != len(Ts):
+        raise ValueError(f"{len(masks)} masks but {len(Ts)} poses")
+    e_h, e_f, cnt, n_through = _judge(labels, n, hull, hull_mesh(hull), hull_mesh(fused), depths, masks, K, Ts,
                                       min_confidence, delta_mm, cap_mm, stride)
     judged = cnt >= min_pixels
     keep = judged & (e_f < margin * e_h) & (n_through <= max_through * np.maximum(cnt, 1.0))

@@ -49,7 +49,7 @@ def pit_scene(v, f, seed: int, dist_mm: float, elev_deg: float, target_y: float,
     near, far = hull_depth_range(hull, K, Ts, SIZE, margin_mm=2.0)
     dms = depth_maps(imgs, K, Ts, (near, far), masks=masks)
     pts = fuse_depths(dms, imgs, K, Ts)
-    return dict(K=K, Ts=Ts, v=v, f=f, imgs=imgs, hull=hull, dms=dms, pts=pts)
+    return dict(K=K, Ts=Ts, v=v, f=f, imgs=imgs, masks=np.asarray(masks, bool), hull=hull, dms=dms, pts=pts)
 
 
 @pytest.fixture(scope="module")
@@ -264,3 +264,4 @@ def test_supported_field_fills_enclosed_voids_and_drops_cut_off_pieces():
     assert np.all(G[3:29, 3:17, 3:17] > 0)          # the big piece stays
     with pytest.raises(ValueError):
         supported_field(h, F[:-1])
+

@@ -54,7 +54,7 @@ def run_fusion(images_rgb, masks, K: np.ndarray, T_cam_table: np.ndarray, hull: 
         return hull_mesh, fused, "hull kept: too few views to hold any out for judging the fused surface"
     with progress.stage("surface") as tick:
         F = fused_field(fused, hull, K, T_cam_table[0::2], depths[0::2], size=(W, H), progress=tick)
-        choice = choose_regions(hull, F, depths[1::2], K, T_cam_table[1::2])
+        choice = choose_regions(hull, F, depths[1::2], K, T_cam_table[1::2], masks[1::2])
     n_pts = len(fused.pts_table)
     if choice.n_kept == 0:
         why = ("stereo carved nothing" if choice.n_regions == 0 else
