@@ -307,3 +307,26 @@ def test_given_masks_are_trusted_by_default(scene, tmp_path):
         vols[tag] = json.loads((out / "summary.json").read_text())["mesh"]["volume_cm3"]
     assert vols["default"] == pytest.approx(vols["zero"], rel=1e-9)
     assert vols["one"] > 1.02 * vols["zero"], vols
+
+
+def test_doubtful_pixels_reaching_the_wall_do_not_grow_the_volume(scene, tmp_path, monkeypatch):
+    # automatic silhouettes whose doubt fills the whole cylinder's image: the hull carved from masks | unknown
+    # reaches the wall, but the object's own silhouette fits; the volume stays and the summary says why
+    import recon.silhouettes as sil
+
+    real = sil.estimate_silhouettes
+
+    def all_doubtful(*a, **k):
+        res = real(*a, **k)
+        unknown = ~res.masks
+        unknown[:, :2] = unknown[:, -2:] = unknown[:, :, :2] = unknown[:, :, -2:] = False  # the frame's edge is sure
+        return type(res)(**{**res.__dict__, "unknown": unknown})
+
+    monkeypatch.setattr(sil, "estimate_silhouettes", all_doubtful)
+    out = tmp_path / "scan"
+    args = _known_cameras_args(scene, out, "--r-outer", "80", "--r-inner", "50", "--stroke", "3")
+    args.remove("--masks")
+    args.remove(str(scene / "masks"))
+    assert main(args) in (0, 3)
+    vol = json.loads((out / "summary.json").read_text())["working_volume"]
+    assert not vol["grown"] and vol["notes"] and "doubtful" in vol["notes"][0], vol

@@ -88,6 +88,8 @@ def print_summary(res, stream=None) -> None:
           f"(first guess: {v['first_guess']}; the cameras allow {v['max_radius_mm']:.0f} x {v['max_height_mm']:.0f})\n")
         for g in v["grown"]:
             w(f"  grown           {g}\n")
+        for note in v.get("notes", []):
+            w(f"  note            {note}\n")
     for name, why in (s.get("silhouettes") or {}).get("conservative", {}).items():
         w(f"  conservative    {name}: {why}\n")
     w(f"  fusion          {s['fusion']}\n")

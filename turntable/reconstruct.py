@@ -17,7 +17,6 @@ Everything in OUT is written atomically; finished stages are cached in
 
 from __future__ import annotations
 
-import inspect
 import json
 import logging
 import math
@@ -200,20 +199,13 @@ def _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress, vol
         else:
             from recon.silhouettes import estimate_silhouettes
 
-            volume = {"radius_mm": vol.radius_mm, "height_mm": vol.height_mm}
-            if "radius_mm" not in inspect.signature(estimate_silhouettes).parameters:  # pragma: no cover
-                # an older recon.silhouettes: its cylinder is the target's extent (remove once both have landed)
-                if opts.spec is None:
-                    raise UserError(f"{opts.input}: automatic silhouettes need --r-outer/--r-inner here; "
-                                    "give them or --masks")
-                volume = {}
             try:
-                res = estimate_silhouettes(images_rgb, K, Ts, opts.spec, **volume, progress=tick)
+                res = estimate_silhouettes(images_rgb, K, Ts, opts.spec, radius_mm=vol.radius_mm,
+                                           height_mm=vol.height_mm, progress=tick)
             except ValueError as exc:
                 raise UserError(f"{opts.input}: silhouettes: {exc}") from None
             masks, status = np.asarray(res.masks, bool), list(res.status)
-            unknown = getattr(res, "unknown", None)
-            unknown = np.zeros_like(masks) if unknown is None else np.asarray(unknown, bool)
+            unknown = np.asarray(res.unknown, bool)
     cache.save("silhouettes", key, masks=masks, unknown=unknown, status=np.array(status))
     return _Silhouettes(masks, unknown, status)
 
@@ -281,6 +273,7 @@ def _silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progre
         vol = replace(vol, radius_mm=float(hit["size"][0]), height_mm=float(hit["size"][1]))
     automatic = opts.masks_dir is None
     clipped: list[str] = []
+    doubtful_wall: list[str] = []
 
     def carve(sil, keep, key, vol):
         hull_key = stage_key(key, keep, opts.resolution, _max_rejections(opts), vol.key())
@@ -304,6 +297,14 @@ def _silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progre
             hull = carve(sil, keep, key, vol)
             touch = (hull.meta["touches_side"] > 0, hull.meta["touches_top"] > 0)
             why = [f"the carved hull reaches its {w}" for w, t in zip(("side", "top"), touch) if t]
+            if automatic and why:
+                # carved from masks | unknown: the doubtful pixels (carved only where a view is sure of the
+                # background) reach the wall, not the object's own silhouette, which fits. Growing on them
+                # would chase the doubt to the edge of the view: note it, and keep the volume.
+                doubtful_wall = [f"doubtful silhouette pixels (not the object's sure silhouette) let the hull reach "
+                                 f"its {w}" for w, t in zip(("side", "top"), touch) if t]
+                progress.note(f"working volume: {'; '.join(doubtful_wall)}")
+                why = []
         if not why:
             break
         bigger = vol.grown(*touch)
@@ -320,7 +321,8 @@ def _silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progre
     cache.save("volume", vol_key, size=np.array([vol.radius_mm, vol.height_mm]), grown=np.array(grown, dtype=str))
     report = {"radius_mm": round(vol.radius_mm, 1), "height_mm": round(vol.height_mm, 1),
               "first_guess": vol.source, "max_radius_mm": round(vol.max_radius_mm, 1),
-              "max_height_mm": round(vol.max_height_mm, 1), "grown": grown, "clipped": clipped}
+              "max_height_mm": round(vol.max_height_mm, 1), "grown": grown, "clipped": clipped,
+              "notes": doubtful_wall}
     return sil, keep, rejected, conservative, hull, vol, report
 
 
