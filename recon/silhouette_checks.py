@@ -4,8 +4,8 @@ A silhouette that looks wrong is not simply dropped: a dropped frame is a
 missing view, and a sequence that loses many neighbouring frames loses the
 views that carve a whole side of the object. So a frame is
 
-* ``"ok"``: its mask is used as it is (only doubtful pixels right next to the
-  outline are left unknown);
+* ``"ok"``: its mask is used as it is (the doubtful pixels joined to it are
+  left unknown);
 * ``"conservative: <reason>"``: kept, with every pixel of the working volume's
   image that is not confidently background marked unknown, so carving with
   ``mask | unknown`` can make the hull larger there but never eat the object;

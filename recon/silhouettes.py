@@ -34,9 +34,20 @@ What calibration knows replaces a global threshold:
   touch the base region are kept and small holes filled.
 
 **Three states.** Besides the mask, each frame has *unknown* pixels: not
-confidently background (a colour the object shows, or a plate matched only
-as a shadow). Carving with ``mask | unknown`` rejects a voxel only where a
-view is sure. Each frame is checked (empty, touching the image border along a
+confidently background. Confident background is only what the object cannot
+fake: a colour the object does not show that a trusted plate matches closely,
+or the printed ink of the table plate reproduced (normalised cross-correlation
+of its texture). A colour of the object's that matches a plate (a white
+object on the white paper), a plate matched only as a shadow or only within
+the colour range of a plate edge is doubtful. In an ``"ok"`` frame the
+doubtful parts joined to the mask are unknown (an object is connected, so what
+the mask missed of it is joined to the mask through doubtful pixels); in a
+``"conservative"`` frame all of them, judged without trusting the mask's
+colours or a room plate the object may have polluted. Carving with
+``mask | unknown`` rejects a voxel only where a view is sure: a white object
+makes the hull larger over the paper (no view can carve plain paper that the
+object's colour matches; rays to the ink and to the room still do), never
+smaller. Each frame is checked (empty, touching the image border along a
 long stretch, area jumping against its neighbours, outline support: the ring
 just outside the outline must sit on an edge and match a trusted plate where
 there is one) and kept as ``"ok"``, kept as ``"conservative: ..."`` with every
@@ -60,6 +71,8 @@ from calib.camera import as_K, as_poses, plane_homography, project_points
 from calib.target import TargetSpec
 
 from .silhouette_checks import camera_azimuths_deg, fill_gaps, frame_status, touches_region_side
+from .silhouette_doubt import (_colour_dist, _colour_set, _doubtful, _envelope, _in_set, _range_dist, _shadow_dist,
+                               _touching)
 
 __all__ = ["SilhouetteResult", "estimate_silhouettes", "cylinder_region", "rectify_to_table"]
 
@@ -83,8 +96,8 @@ class SilhouetteResult:
     unknown : (V, H, W) bool
         Pixels neither confidently object nor background (never overlapping
         ``masks``). Carve with ``masks | unknown``: a view rejects a voxel only
-        where it says background with confidence. In an ``"ok"`` frame only
-        doubtful pixels next to the outline; in a ``"conservative"`` frame every
+        where it says background with confidence. In an ``"ok"`` frame the
+        doubtful pixels joined to the mask; in a ``"conservative"`` frame every
         pixel of the working volume's image that is not confidently background.
     quality : (V,) float64
         In [0, 1]: the outline support (fraction of a ring two pixels outside
@@ -158,53 +171,7 @@ def _check_inputs(images_rgb, K, T_cam_table):
     return imgs, as_K(K), as_poses(T_cam_table, imgs.shape[0])
 
 
-def _colour_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Largest per-channel difference (..., ) float32 between RGB arrays (..., 3), 0..255 units."""
-    return np.abs(a.astype(np.int16) - b.astype(np.int16)).max(axis=-1).astype(np.float32)
-
-
-def _envelope(plate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-channel 3x3 min and max of a plate: agreement tolerates a pixel of blur or misregistration."""
-    k = np.ones((3, 3), np.uint8)
-    return cv2.erode(plate, k), cv2.dilate(plate, k)
-
-
-def _range_dist(img: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Largest per-channel distance (..., ) float32 from ``img`` to the interval [lo, hi]."""
-    i = img.astype(np.int16)
-    d = np.maximum(lo.astype(np.int16) - i, i - hi.astype(np.int16))
-    return np.maximum(d.max(axis=-1), 0).astype(np.float32)
-
-
-def _shadow_dist(img: np.ndarray, plate: np.ndarray) -> np.ndarray:
-    """Distance (..., ) from ``img`` to the darkened plate ``g * plate`` (0.25 <= g <= 0.95) that fits it best."""
-    i = img.astype(np.float32)
-    p = plate.astype(np.float32)
-    g = np.clip((i * p).sum(-1) / np.maximum((p * p).sum(-1), 1.0), 0.25, 0.95)
-    return np.abs(i - g[..., None] * p).max(axis=-1)
-
-
 _PLAIN_ROOM = 0.05  # a room whose colours fill less than this share of the RGB cube is "plain"
-_BIN = 8  # colour-set bins: 8 DN per channel (32^3 bins), one bin of slack around each seen colour
-
-
-def _colour_set(samples: np.ndarray, min_count: int = 2) -> np.ndarray:
-    """(32, 32, 32) bool: the colours seen at least ``min_count`` times in ``samples`` (..., 3) uint8,
-    grown by one bin (noise, a little shading)."""
-    q = (samples.reshape(-1, 3) // _BIN).astype(np.intp)
-    n = 256 // _BIN
-    hist = np.bincount((q[:, 0] * n + q[:, 1]) * n + q[:, 2], minlength=n ** 3).reshape(n, n, n)
-    seen = (hist >= min_count).astype(np.uint8)
-    from scipy.ndimage import binary_dilation
-
-    return binary_dilation(seen, np.ones((3, 3, 3), bool))
-
-
-def _in_set(img: np.ndarray, colours: np.ndarray) -> np.ndarray:
-    """(...) bool: whether each pixel of ``img`` (..., 3) uint8 has a colour of the set."""
-    q = (img // _BIN).astype(np.intp)
-    return colours[q[..., 0], q[..., 1], q[..., 2]]
-
 
 def _median_frames(stack: np.ndarray) -> np.ndarray:
     """Per-pixel median (lower middle) over axis 0 of a uint8 stack."""
@@ -278,7 +245,8 @@ class _Evidence:
     """What the plates say about the pixels (h, w) of one frame's box."""
 
     labels: np.ndarray  # uint8 GrabCut labels
-    explained: np.ndarray  # bool: a trusted plate matches the pixel's colour
+    explained: np.ndarray  # bool: a trusted plate matches the pixel's colour (its 3x3 envelope)
+    tight: np.ndarray  # bool: ... and the plate's own colour there, within 2 tau (not loosely, at an edge)
     shadow: np.ndarray  # bool: a darker copy of a trusted plate matches it
     trusted: np.ndarray  # bool: some plate is trusted here
     disagrees: np.ndarray  # bool: a trusted plate contradicts the pixel
@@ -319,7 +287,9 @@ def _initial_labels(img, region, room: _Plate, table: _Plate, tau, room_colours)
     labels[~region] = cv2.GC_BGD
     background = np.where(table.trust[..., None], table.mid, room.mid)
     usable = table.trust | (room.trust & ~table.trust)
-    return _Evidence(labels, explained, shadow, trusted, trusted & (d > tau) & ~shadow, background, usable)
+    d_mid = np.where(table.trust, _colour_dist(img, table.mid), np.where(room.trust, _colour_dist(img, room.mid), np.inf))
+    tight = explained & (d_mid < 2.0 * tau)
+    return _Evidence(labels, explained, tight, shadow, trusted, trusted & (d > tau) & ~shadow, background, usable)
 
 
 def _grabcut(img, labels, iterations: int = 2) -> np.ndarray:
@@ -446,22 +416,11 @@ def _outline_support(img, mask, ev: _Evidence, tau) -> float:
     return float(supported[ring].mean())
 
 
-def _doubtful(img, mask, region, ev: _Evidence) -> np.ndarray:
-    """(h, w) bool: pixels of the region outside the mask that are not confidently background.
-
-    Confident background has a colour none of the object's, and a trusted
-    plate matches it where one is trusted. A mere darker copy of the plate (a
-    shadow) is not enough: it could be the dull side of a pale object.
-    """
-    object_colours = _colour_set(img[mask], min_count=3) if mask.sum() >= 50 else np.zeros((32,) * 3, bool)
-    confident = ~_in_set(img, object_colours) & (ev.explained | ~ev.trusted)
-    return region & ~mask & ~confident
-
-
 @dataclass(frozen=True)
 class _FrameOut:
     mask: np.ndarray  # (h, w) bool
     doubtful: np.ndarray  # (h, w) bool, see _doubtful
+    doubtful_strict: np.ndarray  # (h, w) bool, the same with plates_only (for a conservative frame)
     support: float  # see _outline_support
 
 
@@ -473,13 +432,18 @@ def _frame_mask(img, region, base, plates: _Plates, T, tau, verified: bool) -> _
     """
     h, w = img.shape[:2]
     room = plates.room_verified if verified else plates.room
-    ev = _initial_labels(img, region, room, plates.table_in_frame(T, (h, w)), tau, plates.room_colours)
+    table = plates.table_in_frame(T, (h, w))
+    ev = _initial_labels(img, region, room, table, tau, plates.room_colours)
     prob = _grabcut(img, ev.labels)
     scale = math.sqrt(h * w / _WORK_PX)
     mask = _refine_outline(prob, ev.explained, ev.disagrees, band_px=max(2, int(math.ceil(scale)) + 1)) & region
     mask = _alpha_outline(img, mask, ev.background, ev.usable, tau) & region
     mask = _clean(mask, base, ev.explained)
-    return _FrameOut(mask, _doubtful(img, mask, region, ev), _outline_support(img, mask, ev, tau))
+    # For a frame in doubt, the room plate explains only with the room's own colours: it may be
+    # the object itself where that covers the same pixels in most frames.
+    ev_v = ev if verified else _initial_labels(img, region, plates.room_verified, table, tau, plates.room_colours)
+    return _FrameOut(mask, _doubtful(img, mask, region, ev_v, table, tau, False),
+                     _doubtful(img, mask, region, ev_v, table, tau, True), _outline_support(img, mask, ev, tau))
 
 
 def _noise_tau(samples: np.ndarray) -> float:
@@ -585,12 +549,10 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
         quality, status = frame_status(masks.reshape(V, -1).sum(axis=1), np.array([o.support for o in outs]),
                                        border, region_px, (W, H))
     status = fill_gaps(status, camera_azimuths_deg(T))
-    band = np.ones((3, 3), np.uint8)
     for i in range(V):
         if status[i].startswith("conservative"):
-            unknown[(i, *box)] = outs[i].doubtful
-        elif status[i] == "ok":  # doubtful pixels on the outline only
-            near = cv2.dilate(outs[i].mask.astype(np.uint8), band) > 0
-            unknown[(i, *box)] = outs[i].doubtful & near
+            unknown[(i, *box)] = outs[i].doubtful_strict
+        elif status[i] == "ok":
+            unknown[(i, *box)] = _touching(outs[i].doubtful, outs[i].mask)
     touches = np.array([touches_region_side(m, r) for m, r in zip(masks, regions)])
     return SilhouetteResult(masks=masks, unknown=unknown, quality=quality, status=status, touches_volume=touches)

@@ -9,6 +9,7 @@ most frames it looks static, see the report.)
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -56,11 +57,12 @@ def _disc_colour(x: np.ndarray, z: np.ndarray) -> np.ndarray:
 
 
 def _render(T_cam_world: np.ndarray, th: float, with_object: bool = True, plain: bool = False,
-            box=(BOX_LO, BOX_HI)):
+            box=(BOX_LO, BOX_HI), white: bool = False):
     """Image (H, W, 3) uint8 and object mask (H, W) of the table turned by ``th``.
 
     ``plain``: a black room and a black disc without a target (a studio turntable, as on real
-    photos): only the object is lit, so no plate knows what lies right behind it.
+    photos): only the object is lit, so no plate knows what lies right behind it. ``white``: an
+    off-white box shaded per face, its top exactly the paper's grey (white on white).
     """
     BOX_LO, BOX_HI = (np.asarray(b, float) for b in box)
     T_wt = _rot_y(th)
@@ -88,6 +90,10 @@ def _render(T_cam_world: np.ndarray, th: float, with_object: bool = True, plain:
         rgb[:] = 12.0
     q = (o + t_box_in[:, None] * d)[hit_box]
     rgb[hit_box] = 0.5 * _blocks(q[:, 0] + q[:, 2], q[:, 1], 6.0, 3) + 0.5 * _blocks(q[:, 2] - q[:, 0], q[:, 1], 5.0, 4)
+    if white:  # the face hit: the slab whose entry is last; lit from above and from +X of the table
+        face = np.argmax(np.minimum(t1, t2), axis=1)[hit_box]
+        side = np.sign(d[hit_box, face])
+        rgb[hit_box] = np.where(face == 1, 235.0, np.where((face == 0) & (side < 0), 228.0, 205.0))[:, None]
     return rgb.reshape(H, W, 3), hit_box.reshape(H, W), T_cam_table
 
 
@@ -170,8 +176,11 @@ def test_three_states_are_disjoint_and_ok_frames_have_a_thin_unknown(sequence):
     assert not (res.unknown & res.masks).any()
     for i, s in enumerate(res.status):
         assert s == "ok" or s.startswith(("conservative: ", "rejected: ")), s
-        if s == "ok":  # only doubtful pixels on the outline: far less than the object
-            assert res.unknown[i].sum() < 0.2 * res.masks[i].sum(), (i, res.unknown[i].sum())
+        if s == "ok":  # only doubtful parts joined to the object (measured: at most 0.8 of its area)
+            assert res.unknown[i].sum() < res.masks[i].sum(), (i, res.unknown[i].sum())
+            n, lab = cv2.connectedComponents(res.unknown[i].astype(np.uint8), connectivity=8)
+            near = cv2.dilate(res.masks[i].astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+            assert set(range(1, n)) <= set(np.unique(lab[near])), i
     assert res.touches_volume.shape == (12,) and not res.touches_volume.any()
 
 
@@ -211,3 +220,30 @@ def test_bad_input():
         estimate_silhouettes(np.zeros((3, 10, 10), np.uint8), K, np.tile(np.eye(4), (3, 1, 1)), SPEC)
     with pytest.raises(ValueError, match="T_cam_table"):
         estimate_silhouettes(np.zeros((3, 10, 10, 3), np.uint8), K, np.tile(np.eye(4), (2, 1, 1)), SPEC)
+
+
+def test_white_box_on_white_paper_is_never_eaten():
+    """An off-white box on the white target (its top the paper's very grey): where the object is
+    seen against the paper no colour tells them apart, so those pixels must be unknown, not
+    background (carving with mask | unknown keeps them), while the printed ink the box does not
+    hide stays confident background (other views' rays to it still carve)."""
+    rng = np.random.default_rng(5)
+    T_cw = _camera_world()
+    frames = [_render(T_cw, th, white=True) for th in np.linspace(0, 2 * np.pi, 12, endpoint=False)]
+    imgs = np.clip(np.stack([f[0] for f in frames]) + rng.normal(0.0, 2.0, (12, H, W, 3)), 0, 255).astype(np.uint8)
+    gt, T = np.stack([f[1] for f in frames]), np.stack([f[2] for f in frames])
+    res = estimate_silhouettes(imgs, K, T, SPEC)
+    # where the box shows hardly anything but its top against the paper, the frame is rejected
+    # (an empty silhouette: it carves nothing) or kept conservatively
+    kept = [i for i, s in enumerate(res.status) if not s.startswith("rejected")]
+    assert len(kept) >= 8, res.status
+    keep = res.masks | res.unknown
+    covered = [(g & k).sum() / g.sum() for g, k in zip(gt[kept], keep[kept])]
+    assert min(covered) >= 0.99, covered  # measured: >= 0.994 (the mask alone: 0.15-0.77; the old rule: 0.48)
+    ink = np.stack([cylinder_region(K, t, (W, H), SPEC.r_inner_mm + 1.5, 0.0)
+                    & ~cylinder_region(K, t, (W, H), SPEC.r_inner_mm - 1.5, 0.0) for t in T])
+    visible_ink = ink & ~gt
+    background = ~keep
+    # the inner ring's visible ink is confident background in each kept frame (measured: 0.6-0.9 of
+    # the band around it, which at this size also holds blended edge pixels; the old rule: 0.0 in one)
+    assert min((background & visible_ink)[i].sum() / visible_ink[i].sum() for i in kept) >= 0.5

@@ -1,0 +1,141 @@
+"""What one frame of a sequence cannot be sure of: the doubtful pixels of :mod:`recon.silhouettes`.
+
+Colours are compared with a background plate per channel, in 0..255 units;
+``tau`` is the sequence's agreement threshold. A pixel outside the mask is
+*confident background* only where the object cannot fake what it shows:
+
+* a colour the object does not show (its colour set, 8-DN bins grown by one)
+  that a trusted plate matches closely, ``max_c |I_c - P_c| < 2 tau`` against
+  the plate's own colour (not only within its 3 x 3 range, which at an edge of
+  the backdrop spans many colours); or
+* the table plate's printed texture reproduced: normalised cross-correlation
+  ``NCC(I, P) > 0.8`` over 3 x 3 where the plate's grey-level variance exceeds
+  ``(2 tau)^2``, the pixel within ``3 tau`` of the plate's range.
+
+Everything else in the working volume's image is doubtful: white on white
+paper, a mere shadow of the plate (the dull side of a pale object), a colour
+only within a plate edge's range. Carving with ``mask | unknown`` then keeps
+what a view cannot rule out.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+from scipy.ndimage import binary_dilation
+
+if TYPE_CHECKING:
+    from .silhouettes import _Evidence, _Plate
+
+
+def _colour_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Largest per-channel difference (..., ) float32 between RGB arrays (..., 3), 0..255 units."""
+    return np.abs(a.astype(np.int16) - b.astype(np.int16)).max(axis=-1).astype(np.float32)
+
+
+def _envelope(plate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-channel 3x3 min and max of a plate: agreement tolerates a pixel of blur or misregistration."""
+    k = np.ones((3, 3), np.uint8)
+    return cv2.erode(plate, k), cv2.dilate(plate, k)
+
+
+def _range_dist(img: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Largest per-channel distance (..., ) float32 from ``img`` to the interval [lo, hi]."""
+    i = img.astype(np.int16)
+    d = np.maximum(lo.astype(np.int16) - i, i - hi.astype(np.int16))
+    return np.maximum(d.max(axis=-1), 0).astype(np.float32)
+
+
+def _shadow_dist(img: np.ndarray, plate: np.ndarray) -> np.ndarray:
+    """Distance (..., ) from ``img`` to the darkened plate ``g * plate`` (0.25 <= g <= 0.95) that fits it best."""
+    i = img.astype(np.float32)
+    p = plate.astype(np.float32)
+    g = np.clip((i * p).sum(-1) / np.maximum((p * p).sum(-1), 1.0), 0.25, 0.95)
+    return np.abs(i - g[..., None] * p).max(axis=-1)
+
+
+_BIN = 8  # colour-set bins: 8 DN per channel (32^3 bins), one bin of slack around each seen colour
+
+
+def _colour_set(samples: np.ndarray, min_count: int = 2) -> np.ndarray:
+    """(32, 32, 32) bool: the colours seen at least ``min_count`` times in ``samples`` (..., 3) uint8,
+    grown by one bin (noise, a little shading)."""
+    q = (samples.reshape(-1, 3) // _BIN).astype(np.intp)
+    n = 256 // _BIN
+    hist = np.bincount((q[:, 0] * n + q[:, 1]) * n + q[:, 2], minlength=n ** 3).reshape(n, n, n)
+    seen = (hist >= min_count).astype(np.uint8)
+    return binary_dilation(seen, np.ones((3, 3, 3), bool))
+
+
+def _in_set(img: np.ndarray, colours: np.ndarray) -> np.ndarray:
+    """(...) bool: whether each pixel of ``img`` (..., 3) uint8 has a colour of the set."""
+    q = (img // _BIN).astype(np.intp)
+    return colours[q[..., 0], q[..., 1], q[..., 2]]
+
+
+def _texture_match(img, plate: _Plate, tau) -> np.ndarray:
+    """(h, w) bool: the pixel's 3 x 3 neighbourhood reproduces the trusted table plate's texture there.
+
+    Where the plate has texture (printed ink: its 3 x 3 grey-level spread is
+    above ``2 tau``), a normalised cross-correlation above 0.8 between the
+    image and the plate says the ray reaches the paper: an object in front
+    of it (white on white paper included) cannot draw the ink's pattern. The
+    pixel itself must lie within ``3 tau`` of the plate's 3 x 3 range (the
+    plate, resampled twice, is blurrier than the photo: thin ink is lighter
+    in it), so an object pixel next to visible ink is not taken for it.
+    """
+    g = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    p = cv2.cvtColor(plate.mid, cv2.COLOR_RGB2GRAY).astype(np.float32)
+
+    def box(a):
+        return cv2.blur(a, (3, 3), borderType=cv2.BORDER_REPLICATE)
+
+    mg, mp = box(g), box(p)
+    vg, vp = box(g * g) - mg * mg, box(p * p) - mp * mp
+    cov = box(g * p) - mg * mp
+    ncc = cov / np.sqrt(np.maximum(vg * vp, 1e-6))
+    near = _range_dist(img, plate.lo, plate.hi) < 3.0 * tau  # the pixel itself within the plate's range
+    return plate.trust & near & (vp > (2.0 * tau) ** 2) & (ncc > 0.8)
+
+
+def _doubtful(img, mask, region, ev: _Evidence, table: _Plate, tau, plates_only: bool) -> np.ndarray:
+    """(h, w) bool: pixels of the region outside the mask that are not confidently background.
+
+    Confident background is what the object cannot fake: a colour none of the
+    object's that a trusted plate matches closely (its own colour, not just
+    the range of a plate pixel's neighbourhood, which at an edge of the
+    backdrop spans many colours), or the table plate's printed texture
+    reproduced (:func:`_texture_match`). A colour of the object's that
+    matches a plate is doubtful (white object on white paper), and so is a
+    mere darker copy of the plate (a shadow: it could be the dull side of a
+    pale object). Where no plate is trusted, a colour none of the object's is
+    confident too, unless ``plates_only`` (a frame whose mask is in doubt:
+    then the object's colours are also those of every pixel of the region
+    that no plate explains).
+    """
+    # a frame in doubt may have missed most of the object: what no plate explains may be it too
+    obj = mask | (region & ~ev.explained) if plates_only else mask
+    object_colours = _colour_set(img[obj], min_count=3) if obj.sum() >= 50 else np.zeros((32,) * 3, bool)
+    known = ev.tight if plates_only else ev.tight | ~ev.trusted
+    confident = ~_in_set(img, object_colours) & known
+    confident |= _texture_match(img, table, tau)
+    return region & ~mask & ~confident
+
+
+def _touching(doubtful: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(h, w) bool: the 8-connected parts of ``doubtful`` that touch ``mask``.
+
+    The silhouette of a connected object is connected: an object pixel the
+    mask missed is linked to the mask through object pixels, all of them in
+    the mask or doubtful (none is confident background). So the doubtful
+    parts touching the mask hold every such pixel, and a doubtful patch
+    surrounded by confident background cannot be the object.
+    """
+    n, lab = cv2.connectedComponents(doubtful.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return doubtful
+    near = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    hit = np.unique(lab[near & doubtful])
+    return np.isin(lab, hit[hit > 0])
