@@ -383,10 +383,10 @@ def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, reco
     images_rgb = [images_rgb[i] for i in keep]
     masks, Ts = sil.masks[keep], Ts[keep]
 
-    from recon.meshing import mesh_from_hull
+    from recon.meshing import clip_to_hull, mesh_from_hull
 
-    with progress.stage("hull mesh"):
-        hull_mesh = mesh_from_hull(hull, max_faces=opts.max_faces)
+    with progress.stage("hull mesh"):  # smoothing moves vertices up to ~0.3 mm out: back inside the hull
+        hull_mesh = clip_to_hull(mesh_from_hull(hull, max_faces=opts.max_faces), hull)
     mesh, fused, fusion_note = hull_mesh, None, "disabled (--no-fusion)"
     if opts.fusion:
         from .fusion_stage import run_fusion
