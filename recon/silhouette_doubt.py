@@ -56,6 +56,7 @@ def _shadow_dist(img: np.ndarray, plate: np.ndarray) -> np.ndarray:
     return np.abs(i - g[..., None] * p).max(axis=-1)
 
 
+_MAJOR = 0.002  # an object colour fills at least this share of the object's pixels (one bin)
 _BIN = 8  # colour-set bins: 8 DN per channel (32^3 bins), one bin of slack around each seen colour
 
 
@@ -113,11 +114,15 @@ def _doubtful(img, mask, region, ev: _Evidence, table: _Plate, tau, plates_only:
     pale object). Where no plate is trusted, a colour none of the object's is
     confident too, unless ``plates_only`` (a frame whose mask is in doubt:
     then the object's colours are also those of every pixel of the region
-    that no plate explains).
+    that no plate explains). The object's colours are those filling at least
+    0.2 % of its pixels: a few dark crevices do not make a dark room doubtful.
     """
     # a frame in doubt may have missed most of the object: what no plate explains may be it too
     obj = mask | (region & ~ev.explained) if plates_only else mask
-    object_colours = _colour_set(img[obj], min_count=3) if obj.sum() >= 50 else np.zeros((32,) * 3, bool)
+    # the object's colours: those of at least 0.2 % of its pixels (not a few dark crevices)
+    n_obj = int(obj.sum())
+    object_colours = _colour_set(img[obj], min_count=max(3, int(_MAJOR * n_obj))) if n_obj >= 50 else \
+        np.zeros((32,) * 3, bool)
     known = ev.tight if plates_only else ev.tight | ~ev.trusted
     confident = ~_in_set(img, object_colours) & known
     confident |= _texture_match(img, table, tau)
