@@ -101,14 +101,14 @@ def _texture_match(img, plate: _Plate, tau) -> np.ndarray:
     return plate.trust & near & (vp > (2.0 * tau) ** 2) & (ncc > 0.8)
 
 
-def _doubtful(img, mask, region, ev: _Evidence, table: _Plate, tau, plates_only: bool) -> np.ndarray:
+def _doubtful(img, mask, region, ev: _Evidence, ink: np.ndarray, plates_only: bool) -> np.ndarray:
     """(h, w) bool: pixels of the region outside the mask that are not confidently background.
 
     Confident background is what the object cannot fake: a colour none of the
     object's that a trusted plate matches closely (its own colour, not just
     the range of a plate pixel's neighbourhood, which at an edge of the
     backdrop spans many colours), or the table plate's printed texture
-    reproduced (:func:`_texture_match`). A colour of the object's that
+    reproduced (``ink``, see :func:`_texture_match`). A colour of the object's that
     matches a plate is doubtful (white object on white paper), and so is a
     mere darker copy of the plate (a shadow: it could be the dull side of a
     pale object). Where no plate is trusted, a colour none of the object's is
@@ -125,7 +125,7 @@ def _doubtful(img, mask, region, ev: _Evidence, table: _Plate, tau, plates_only:
         np.zeros((32,) * 3, bool)
     known = ev.tight if plates_only else ev.tight | ~ev.trusted
     confident = ~_in_set(img, object_colours) & known
-    confident |= _texture_match(img, table, tau)
+    confident |= ink
     return region & ~mask & ~confident
 
 

@@ -72,7 +72,7 @@ from calib.target import TargetSpec
 
 from .silhouette_checks import camera_azimuths_deg, fill_gaps, frame_status, touches_region_side
 from .silhouette_doubt import (_colour_dist, _colour_set, _doubtful, _envelope, _in_set, _range_dist, _shadow_dist,
-                               _touching)
+                               _texture_match, _touching)
 
 __all__ = ["SilhouetteResult", "estimate_silhouettes", "cylinder_region", "rectify_to_table"]
 
@@ -442,8 +442,9 @@ def _frame_mask(img, region, base, plates: _Plates, T, tau, verified: bool) -> _
     # For a frame in doubt, the room plate explains only with the room's own colours: it may be
     # the object itself where that covers the same pixels in most frames.
     ev_v = ev if verified else _initial_labels(img, region, plates.room_verified, table, tau, plates.room_colours)
-    return _FrameOut(mask, _doubtful(img, mask, region, ev_v, table, tau, False),
-                     _doubtful(img, mask, region, ev_v, table, tau, True), _outline_support(img, mask, ev, tau))
+    ink = _texture_match(img, table, tau)
+    return _FrameOut(mask, _doubtful(img, mask, region, ev_v, ink, False), _doubtful(img, mask, region, ev_v, ink, True),
+                     _outline_support(img, mask, ev, tau))
 
 
 def _noise_tau(samples: np.ndarray) -> float:
