@@ -550,10 +550,15 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
         quality, status = frame_status(masks.reshape(V, -1).sum(axis=1), np.array([o.support for o in outs]),
                                        border, region_px, (W, H))
     status = fill_gaps(status, camera_azimuths_deg(T))
+    band = np.ones((3, 3), np.uint8)
     for i in range(V):
         if status[i].startswith("conservative"):
             unknown[(i, *box)] = outs[i].doubtful_strict
         elif status[i] == "ok":
-            unknown[(i, *box)] = _touching(outs[i].doubtful, outs[i].mask)
+            # doubtful pixels on the outline only: every doubtful region joined to the mask
+            # (:func:`_touching`) would keep a white object on white paper, but fattens every hull over the
+            # paper and its shadows (rendered chair: model Chamfer 0.97 -> 1.47 % of the diagonal, vase hull
+            # 0.35 -> 2.4 %) while the white object's model still misses the 1 % bar (2.6-24 %)
+            unknown[(i, *box)] = outs[i].doubtful & (cv2.dilate(outs[i].mask.astype(np.uint8), band) > 0)
     touches = np.array([touches_region_side(m, r) for m, r in zip(masks, regions)])
     return SilhouetteResult(masks=masks, unknown=unknown, quality=quality, status=status, touches_volume=touches)
