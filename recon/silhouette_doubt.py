@@ -127,20 +127,3 @@ def _doubtful(img, mask, region, ev: _Evidence, ink: np.ndarray, plates_only: bo
     confident = ~_in_set(img, object_colours) & known
     confident |= ink
     return region & ~mask & ~confident
-
-
-def _touching(doubtful: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """(h, w) bool: the 8-connected parts of ``doubtful`` that touch ``mask``.
-
-    The silhouette of a connected object is connected: an object pixel the
-    mask missed is linked to the mask through object pixels, all of them in
-    the mask or doubtful (none is confident background). So the doubtful
-    parts touching the mask hold every such pixel, and a doubtful patch
-    surrounded by confident background cannot be the object.
-    """
-    n, lab = cv2.connectedComponents(doubtful.astype(np.uint8), connectivity=8)
-    if n <= 1:
-        return doubtful
-    near = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    hit = np.unique(lab[near & doubtful])
-    return np.isin(lab, hit[hit > 0])

@@ -40,14 +40,13 @@ or the printed ink of the table plate reproduced (normalised cross-correlation
 of its texture). A colour of the object's that matches a plate (a white
 object on the white paper), a plate matched only as a shadow or only within
 the colour range of a plate edge is doubtful. In an ``"ok"`` frame the
-doubtful parts joined to the mask are unknown (an object is connected, so what
-the mask missed of it is joined to the mask through doubtful pixels); in a
+doubtful pixels on the mask's one-pixel outline band are unknown; in a
 ``"conservative"`` frame all of them, judged without trusting the mask's
 colours or a room plate the object may have polluted. Carving with
-``mask | unknown`` rejects a voxel only where a view is sure: a white object
-makes the hull larger over the paper (no view can carve plain paper that the
-object's colour matches; rays to the ink and to the room still do), never
-smaller. Each frame is checked (empty, touching the image border along a
+``mask | unknown`` rejects a voxel only where a view is sure. (Not yet for a
+white object on white paper in an ``"ok"`` frame: taking every doubtful region
+joined to the mask would keep it, but fattened every other object's hull; see
+the end of :func:`estimate_silhouettes`.) Each frame is checked (empty, touching the image border along a
 long stretch, area jumping against its neighbours, outline support: the ring
 just outside the outline must sit on an edge and match a trusted plate where
 there is one) and kept as ``"ok"``, kept as ``"conservative: ..."`` with every
@@ -72,7 +71,7 @@ from calib.target import TargetSpec
 
 from .silhouette_checks import camera_azimuths_deg, fill_gaps, frame_status, touches_region_side
 from .silhouette_doubt import (_colour_dist, _colour_set, _doubtful, _envelope, _in_set, _range_dist, _shadow_dist,
-                               _texture_match, _touching)
+                               _texture_match)
 
 __all__ = ["SilhouetteResult", "estimate_silhouettes", "cylinder_region", "rectify_to_table"]
 
@@ -97,7 +96,7 @@ class SilhouetteResult:
         Pixels neither confidently object nor background (never overlapping
         ``masks``). Carve with ``masks | unknown``: a view rejects a voxel only
         where it says background with confidence. In an ``"ok"`` frame the
-        doubtful pixels joined to the mask; in a ``"conservative"`` frame every
+        doubtful pixels on the mask's outline band; in a ``"conservative"`` frame every
         pixel of the working volume's image that is not confidently background.
     quality : (V,) float64
         In [0, 1]: the outline support (fraction of a ring two pixels outside
@@ -555,8 +554,8 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
         if status[i].startswith("conservative"):
             unknown[(i, *box)] = outs[i].doubtful_strict
         elif status[i] == "ok":
-            # doubtful pixels on the outline only: every doubtful region joined to the mask
-            # (:func:`_touching`) would keep a white object on white paper, but fattens every hull over the
+            # doubtful pixels on the outline only: every doubtful region joined to the mask (8-connected)
+            # would keep a white object on white paper, but fattens every hull over the
             # paper and its shadows (rendered chair: model Chamfer 0.97 -> 1.47 % of the diagonal, vase hull
             # 0.35 -> 2.4 %) while the white object's model still misses the 1 % bar (2.6-24 %)
             unknown[(i, *box)] = outs[i].doubtful & (cv2.dilate(outs[i].mask.astype(np.uint8), band) > 0)
