@@ -330,3 +330,13 @@ def test_doubtful_pixels_reaching_the_wall_do_not_grow_the_volume(scene, tmp_pat
     assert main(args) in (0, 3)
     vol = json.loads((out / "summary.json").read_text())["working_volume"]
     assert not vol["grown"] and vol["notes"] and "doubtful" in vol["notes"][0], vol
+
+
+def test_negative_max_rejections_fails_before_any_work(tmp_path, scene, capsys):
+    out = tmp_path / "scan"
+    code = main(["reconstruct", str(scene / "images"), "--r-outer", "80", "--r-inner", "50", "--out", str(out),
+                 "--max-rejections", "-1", "--quiet"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "--max-rejections must be 0 or more" in err and "Traceback" not in err
+    assert not out.exists()

@@ -40,6 +40,8 @@ def add_arguments(parser) -> None:
 def options_from_args(args) -> ReconstructOptions:
     if args.resolution < 16 or args.resolution > 1024:
         raise UserError(f"--resolution must be between 16 and 1024, got {args.resolution}")
+    if args.max_rejections is not None and args.max_rejections < 0:
+        raise UserError(f"--max-rejections must be 0 or more, got {args.max_rejections}")
     if args.max_faces < 100:
         raise UserError(f"--max-faces must be at least 100, got {args.max_faces}")
     # fail before the long stages, not after them
