@@ -44,9 +44,9 @@ Chamfer 0.27.
 Which carved regions are kept is decided on views not integrated here:
 :func:`recon.regions.choose_regions`.
 
-:func:`compare_to_hull` decides whether the fused mesh should replace the
-hull mesh: both are rendered into views and compared with the confident
-stereo depth there; see its docstring for the criterion.
+:func:`compare_to_hull` (a whole-mesh comparison with the confident stereo
+depth, see its docstring) is no longer used by ``reconstruct``, which decides
+region by region; it is kept for callers comparing two meshes.
 """
 
 from __future__ import annotations
