@@ -253,8 +253,23 @@ class _Evidence:
     usable: np.ndarray  # bool: where ``background`` is meaningful
 
 
-def _initial_labels(img, region, room: _Plate, table: _Plate, tau, room_colours) -> _Evidence:
+def _plate_distances(img, room: _Plate, table: _Plate) -> tuple[np.ndarray, ...]:
+    """Each pixel's colour distances to the room and table plates: (range, shadow, own colour) for each.
+
+    They depend on the plates' colours only, not on where a plate is trusted, so
+    :func:`_initial_labels` can judge one frame under two trust maps of the room plate
+    (``room`` and ``room_verified`` share their colours) at the cost of one.
+    """
+    return (_range_dist(img, room.lo, room.hi), _range_dist(img, table.lo, table.hi),
+            _shadow_dist(img, room.mid), _shadow_dist(img, table.mid),
+            _colour_dist(img, room.mid), _colour_dist(img, table.mid))
+
+
+def _initial_labels(img, region, room: _Plate, table: _Plate, tau, room_colours,
+                    dist: tuple[np.ndarray, ...] | None = None) -> _Evidence:
     """GrabCut labels from the plates, and what each pixel's plates say (:class:`_Evidence`).
+
+    ``dist``: :func:`_plate_distances` of these plates' colours, when already computed.
 
     Where the table plate is trusted it alone decides: it shows the plane point
     behind the pixel as other views saw it, so an object that covers the same
@@ -262,11 +277,12 @@ def _initial_labels(img, region, room: _Plate, table: _Plate, tau, room_colours)
     explain itself away there. The room plate decides elsewhere; its
     explanations are only hard where it is background in nearly every frame.
     """
-    d_room = np.where(room.trust & ~table.trust, _range_dist(img, room.lo, room.hi), np.inf)
-    d_tab = np.where(table.trust, _range_dist(img, table.lo, table.hi), np.inf)
+    r_range, t_range, r_shadow, t_shadow, r_mid, t_mid = dist if dist is not None else _plate_distances(img, room, table)
+    d_room = np.where(room.trust & ~table.trust, r_range, np.inf)
+    d_tab = np.where(table.trust, t_range, np.inf)
     d = np.minimum(d_room, d_tab)
-    s_room = np.where(room.trust & ~table.trust, _shadow_dist(img, room.mid), np.inf)
-    s_tab = np.where(table.trust, _shadow_dist(img, table.mid), np.inf)
+    s_room = np.where(room.trust & ~table.trust, r_shadow, np.inf)
+    s_tab = np.where(table.trust, t_shadow, np.inf)
     shadow = np.minimum(s_room, s_tab) < tau
     explained = d < tau
     trusted = room.trust | table.trust
@@ -286,7 +302,7 @@ def _initial_labels(img, region, room: _Plate, table: _Plate, tau, room_colours)
     labels[~region] = cv2.GC_BGD
     background = np.where(table.trust[..., None], table.mid, room.mid)
     usable = table.trust | (room.trust & ~table.trust)
-    d_mid = np.where(table.trust, _colour_dist(img, table.mid), np.where(room.trust, _colour_dist(img, room.mid), np.inf))
+    d_mid = np.where(table.trust, t_mid, np.where(room.trust, r_mid, np.inf))
     tight = explained & (d_mid < 2.0 * tau)
     return _Evidence(labels, explained, tight, shadow, trusted, trusted & (d > tau) & ~shadow, background, usable)
 
@@ -432,7 +448,8 @@ def _frame_mask(img, region, base, plates: _Plates, T, tau, verified: bool) -> _
     h, w = img.shape[:2]
     room = plates.room_verified if verified else plates.room
     table = plates.table_in_frame(T, (h, w))
-    ev = _initial_labels(img, region, room, table, tau, plates.room_colours)
+    dist = _plate_distances(img, room, table)  # the same for plates.room and plates.room_verified
+    ev = _initial_labels(img, region, room, table, tau, plates.room_colours, dist)
     prob = _grabcut(img, ev.labels)
     scale = math.sqrt(h * w / _WORK_PX)
     mask = _refine_outline(prob, ev.explained, ev.disagrees, band_px=max(2, int(math.ceil(scale)) + 1)) & region
@@ -440,7 +457,8 @@ def _frame_mask(img, region, base, plates: _Plates, T, tau, verified: bool) -> _
     mask = _clean(mask, base, ev.explained)
     # For a frame in doubt, the room plate explains only with the room's own colours: it may be
     # the object itself where that covers the same pixels in most frames.
-    ev_v = ev if verified else _initial_labels(img, region, plates.room_verified, table, tau, plates.room_colours)
+    ev_v = ev if verified else _initial_labels(img, region, plates.room_verified, table, tau, plates.room_colours,
+                                               dist)
     ink = _texture_match(img, table, tau)
     return _FrameOut(mask, _doubtful(img, mask, region, ev_v, ink, False), _doubtful(img, mask, region, ev_v, ink, True),
                      _outline_support(img, mask, ev, tau))
