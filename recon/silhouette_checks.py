@@ -19,16 +19,12 @@ Angles of the turn are those of the camera centres about the table's +Y axis,
 
 from __future__ import annotations
 
-import math
-
-import cv2
 import numpy as np
 
-__all__ = ["frame_status", "camera_azimuths_deg", "fill_gaps", "touches_region_side"]
+__all__ = ["frame_status", "camera_azimuths_deg", "fill_gaps"]
 
 _MIN_AREA = 0.02  # a silhouette smaller than this fraction of the cylinder's image is "empty"
 _MIN_SUPPORT = 0.5  # outline fraction that must look like background
-_TOUCH_PX = 8  # mask pixels on the volume's image boundary that count as "reaches it"
 
 
 def frame_status(area_px: np.ndarray, support: np.ndarray, border_px: np.ndarray, region_px: np.ndarray,
@@ -131,12 +127,3 @@ def _walk(inside: list[tuple[float, int]], gap: float, max_gap_deg: float) -> se
 def _keep(status: str, gap_deg: float) -> str:
     reason = status[len("rejected: "):] if status.startswith("rejected: ") else status
     return f"conservative: kept although {reason} (dropping it leaves {gap_deg:.0f} deg of the turn without a view)"
-
-
-def touches_region_side(mask: np.ndarray, region: np.ndarray, width_px: int = 2) -> bool:
-    """Whether ``mask`` (H, W) reaches the boundary of ``region`` (H, W), the working volume's image,
-    away from the image border: the object may extend beyond the volume there."""
-    r8 = region.astype(np.uint8)
-    k = np.ones((2 * width_px + 1, 2 * width_px + 1), np.uint8)
-    rim = region & (cv2.erode(r8, k, borderType=cv2.BORDER_REPLICATE) == 0)
-    return int((mask & rim).sum()) >= _TOUCH_PX

@@ -69,7 +69,7 @@ import numpy as np
 from calib.camera import as_K, as_poses, plane_homography, project_points
 from calib.target import TargetSpec
 
-from .silhouette_checks import camera_azimuths_deg, fill_gaps, frame_status, touches_region_side
+from .silhouette_checks import camera_azimuths_deg, fill_gaps, frame_status
 from .silhouette_doubt import (_colour_dist, _colour_set, _doubtful, _envelope, _in_set, _range_dist, _shadow_dist,
                                _texture_match)
 
@@ -107,16 +107,12 @@ class SilhouetteResult:
         ``unknown``) or ``"rejected: <reason>"`` (leave the frame out). No gap
         of more than 30 deg of the turn between kept frames is opened by a
         rejection (see :mod:`recon.silhouette_checks`).
-    touches_volume : (V,) bool
-        The mask reaches the boundary of the working volume's image (its side
-        or top): the object may be larger than the volume; grow it and re-run.
     """
 
     masks: np.ndarray
     unknown: np.ndarray
     quality: np.ndarray
     status: tuple[str, ...]
-    touches_volume: np.ndarray
 
 
 def cylinder_region(K: np.ndarray, T_cam_table: np.ndarray, size: tuple[int, int], radius_mm: float,
@@ -517,7 +513,7 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
     unknown = np.zeros((V, H, W), bool)
     if not union.any():
         return SilhouetteResult(unknown.copy(), unknown, np.zeros(V),
-                                ("rejected: the working volume is not in view",) * V, np.zeros(V, bool))
+                                ("rejected: the working volume is not in view",) * V)
     rows, cols = np.flatnonzero(union.any(axis=1)), np.flatnonzero(union.any(axis=0))
     y0, y1, x0, x1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
     crops = imgs[:, y0:y1, x0:x1]
@@ -577,5 +573,4 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
             # paper and its shadows (rendered chair: model Chamfer 0.97 -> 1.47 % of the diagonal, vase hull
             # 0.35 -> 2.4 %) while the white object's model still misses the 1 % bar (2.6-24 %)
             unknown[(i, *box)] = outs[i].doubtful & (cv2.dilate(outs[i].mask.astype(np.uint8), band) > 0)
-    touches = np.array([touches_region_side(m, r) for m, r in zip(masks, regions)])
-    return SilhouetteResult(masks=masks, unknown=unknown, quality=quality, status=status, touches_volume=touches)
+    return SilhouetteResult(masks=masks, unknown=unknown, quality=quality, status=status)
