@@ -1,0 +1,213 @@
+"""Reading what phones and cameras produce: EXIF orientation, HEIC, 16 bit, EXIF focal length.
+
+Every test writes a small synthetic image with known upright content and
+checks that :func:`turntable.images.read_image` gives it back upright, in
+BGR uint8, within the codec's error.
+"""
+
+import io
+import math
+
+import cv2
+import numpy as np
+import pytest
+from PIL import Image
+
+from turntable.errors import UserError
+from turntable.images import (exif_focal_35mm, exif_focal_px, focal_px_from_35mm, list_images,
+                              read_image)
+
+# mean |difference|, 8-bit levels, that lossy codecs leave on the blocky test image (chroma subsampling at
+# block edges); a wrong orientation of the same image is off by ~80
+JPEG_TOL = 12.0
+HEIC_TOL = 12.0
+WRONG_MIN = 40.0
+
+# Stored pixels for EXIF orientation o are inverse_o(upright); applying o gives upright back.
+# (EXIF 6: "rotate 90 CW to view" -> stored = upright rotated 90 CCW.)
+_STORED = {1: lambda a: a, 2: lambda a: a[:, ::-1], 3: lambda a: np.rot90(a, 2), 4: lambda a: a[::-1],
+           5: lambda a: np.rot90(a, 1)[::-1], 6: lambda a: np.rot90(a, 1), 7: lambda a: np.rot90(a, -1)[::-1],
+           8: lambda a: np.rot90(a, -1)}
+
+
+def _upright(rng, h=72, w=48):
+    """A portrait BGR test image with no symmetry: coloured blocks (8x8, JPEG-friendly) and a top band."""
+    blocks = rng.integers(0, 256, (h // 8, w // 8, 3), dtype=np.uint8)
+    img = np.kron(blocks, np.ones((8, 8, 1), np.uint8))
+    img[:8] = (0, 0, 255)  # red band on top: a wrong rotation cannot match
+    return np.ascontiguousarray(img)
+
+
+def _exif(orientation=None, f35=None):
+    ex = Image.Exif()
+    if orientation is not None:
+        ex[0x0112] = orientation
+    if f35 is not None:
+        ex.get_ifd(0x8769)[0xA405] = f35
+    return ex
+
+
+def _write_pil(path, bgr, fmt, exif=None, **kw):
+    Image.fromarray(np.ascontiguousarray(bgr[..., ::-1])).save(path, fmt, exif=exif or Image.Exif(), **kw)
+
+
+def _mean_err(a, b):
+    assert a.shape == b.shape, f"shape {a.shape} != {b.shape}"
+    return float(np.abs(a.astype(float) - b.astype(float)).mean())
+
+
+@pytest.mark.parametrize("orientation", [1, 2, 3, 4, 5, 6, 7, 8])
+@pytest.mark.parametrize("fmt,suffix,tol", [("JPEG", ".jpg", JPEG_TOL), ("PNG", ".png", 0.0),
+                                            ("TIFF", ".tif", 0.0), ("WEBP", ".webp", JPEG_TOL)])
+def test_exif_orientation_gives_the_upright_image(tmp_path, orientation, fmt, suffix, tol):
+    rng = np.random.default_rng(orientation)
+    up = _upright(rng)
+    path = tmp_path / f"photo{suffix}"
+    kw = {"quality": 95} if fmt in ("JPEG", "WEBP") else {}
+    _write_pil(path, np.ascontiguousarray(_STORED[orientation](up)), fmt, _exif(orientation), **kw)
+    img = read_image(path)
+    assert img.dtype == np.uint8 and img.shape == up.shape  # portrait, as seen
+    assert _mean_err(img, up) <= tol + 1e-9
+
+
+def test_portrait_jpeg_orientation_6_and_8_differ_from_the_stored_pixels(tmp_path):
+    """The check above can fail: without orientation, the stored pixels are landscape."""
+    rng = np.random.default_rng(3)
+    up = _upright(rng)
+    for o in (6, 8):
+        path = tmp_path / f"p{o}.jpg"
+        _write_pil(path, np.ascontiguousarray(_STORED[o](up)), "JPEG", _exif(o), quality=95)
+        stored = cv2.imdecode(np.fromfile(str(path), np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+        assert stored.shape == (up.shape[1], up.shape[0], 3)
+        img = read_image(path)
+        assert _mean_err(img, up) <= JPEG_TOL
+        assert _mean_err(img, np.rot90(up, 2)) >= WRONG_MIN  # upside down would be seen
+
+
+def _write_heic(path, bgr, exif=None, quality=92):
+    import pillow_heif
+
+    rgb = np.ascontiguousarray(bgr[..., ::-1])
+    mode = "RGB;16" if rgb.dtype == np.uint16 else "RGB"
+    pillow_heif.from_bytes(mode, (rgb.shape[1], rgb.shape[0]), rgb.tobytes()).save(
+        path, quality=quality, exif=exif.tobytes() if exif is not None else None)
+
+
+@pytest.mark.parametrize("orientation", [1, 6, 8, 3])
+def test_heic_round_trip_upright(tmp_path, orientation):
+    """pillow-heif stores the EXIF orientation as HEIF irot/imir; the stored pixels are not upright."""
+    rng = np.random.default_rng(10 + orientation)
+    up = _upright(rng, 80, 64)
+    path = tmp_path / "photo.HEIC"
+    _write_heic(path, np.ascontiguousarray(_STORED[orientation](up)), _exif(orientation))
+    img = read_image(path)
+    assert img.dtype == np.uint8
+    assert _mean_err(img, up) <= HEIC_TOL
+
+
+def test_heic_ten_bit_is_scaled_not_truncated(tmp_path):
+    ramp = np.linspace(0, 65535, 64).round().astype(np.uint16)
+    img16 = np.ascontiguousarray(np.broadcast_to(ramp[None, :, None], (32, 64, 3)))
+    path = tmp_path / "ramp.heif"
+    _write_heic(path, img16, quality=-1)  # lossless-ish 10 bit
+    got = read_image(path)
+    want = np.round(img16 / 257.0)
+    assert got.dtype == np.uint8 and np.abs(got.astype(float) - want).max() <= 2  # codec + 10-bit step
+
+
+@pytest.mark.parametrize("suffix", [".png", ".tif"])
+@pytest.mark.parametrize("channels", [1, 3])
+def test_sixteen_bit_scaled_by_257_with_rounding(tmp_path, suffix, channels):
+    rng = np.random.default_rng(5)
+    img16 = rng.integers(0, 65536, (40, 56, channels), dtype=np.uint16)
+    img16.reshape(-1)[:6] = [0, 1, 128, 129, 65406, 65535]  # the ends and both sides of a rounding step
+    path = tmp_path / f"deep{suffix}"
+    assert cv2.imwrite(str(path), img16 if channels == 3 else img16[..., 0])
+    got = read_image(path)
+    want = np.round(img16.astype(np.float64) / 257.0).astype(np.uint8)  # round(v / 257)
+    if channels == 1:
+        want = np.repeat(want, 3, axis=2)
+    assert got.dtype == np.uint8 and got.shape == (40, 56, 3)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(got.reshape(-1, 3)[:6, 0] if channels == 1 else got.reshape(-1)[:6],
+                                  [0, 0, 0, 1, 254, 255])
+
+
+def test_sixteen_bit_png_with_orientation(tmp_path):
+    rng = np.random.default_rng(7)
+    up8 = _upright(rng)
+    up16 = up8.astype(np.uint16) * 257
+    path = tmp_path / "deep.png"
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(_STORED[6](up16)))
+    # insert an eXIf chunk with orientation 6 after IHDR (33 bytes: signature 8 + IHDR 25)
+    import zlib
+
+    payload = _exif(6).tobytes()[6:]  # eXIf holds the TIFF structure without the "Exif\0\0" prefix Pillow adds
+    chunk = len(payload).to_bytes(4, "big") + b"eXIf" + payload + zlib.crc32(b"eXIf" + payload).to_bytes(4, "big")
+    path.write_bytes(buf.tobytes()[:33] + chunk + buf.tobytes()[33:])
+    np.testing.assert_array_equal(read_image(path), up8)
+
+
+def test_float_tiff_refused_naming_the_file(tmp_path):
+    path = tmp_path / "hdr.tif"
+    assert cv2.imwrite(str(path), np.full((8, 8, 3), 0.5, np.float32))
+    with pytest.raises(UserError, match=r"hdr\.tif: float32 pixels are not supported"):
+        read_image(path)
+
+
+@pytest.mark.parametrize("name,content,reason", [
+    ("truncated.heic", None, "cannot decode HEIC/HEIF image"),
+    ("empty.heic", b"", "cannot decode image"),
+    ("notheic.heic", b"\xff\xd8 this is not an image", "not by its content"),
+    ("text.png", b"hello", "cannot decode image"),
+])
+def test_bad_files_give_user_error_naming_the_file(tmp_path, name, content, reason):
+    path = tmp_path / name
+    if content is None:  # a real HEIC cut in half
+        full = tmp_path / "full.heic"
+        _write_heic(full, _upright(np.random.default_rng(0)))
+        data = full.read_bytes()
+        content = data[:len(data) // 2]
+    path.write_bytes(content)
+    with pytest.raises(UserError, match=rf"{name}: .*{reason}"):
+        read_image(path)
+
+
+def test_heic_listed_in_folders(tmp_path):
+    for n in ("b.heic", "a.HEIF", "c.txt"):
+        (tmp_path / n).write_bytes(b"x")
+    assert [p.name for p in list_images(tmp_path)] == ["a.HEIF", "b.heic"]
+
+
+# --------------------------------------------------------------------------- EXIF focal length
+def test_focal_px_from_35mm_uses_the_diagonal():
+    # 26 mm equivalent on a 4032 x 3024 phone image: 26 / 43.267 * 5040 = 3028.6 px
+    assert focal_px_from_35mm(26, 4032, 3024) == pytest.approx(26 / math.hypot(36, 24) * 5040, rel=1e-12)
+    assert focal_px_from_35mm(26, 4032, 3024) == pytest.approx(3028.6, abs=0.1)
+    assert focal_px_from_35mm(26, 3024, 4032) == focal_px_from_35mm(26, 4032, 3024)  # portrait: same
+    # a 36 x 24 mm image 3600 x 2400 px (100 px/mm): a 50 mm lens is 5000 px
+    assert focal_px_from_35mm(50, 3600, 2400) == pytest.approx(5000.0, rel=1e-12)
+    with pytest.raises(ValueError):
+        focal_px_from_35mm(0, 10, 10)
+
+
+@pytest.mark.parametrize("fmt,suffix", [("JPEG", ".jpg"), ("HEIC", ".heic")])
+def test_exif_focal_read_from_jpeg_and_heic(tmp_path, fmt, suffix):
+    up = _upright(np.random.default_rng(1))
+    path = tmp_path / f"f{suffix}"
+    ex = _exif(6, f35=26)
+    if fmt == "HEIC":
+        _write_heic(path, np.ascontiguousarray(_STORED[6](up)), ex)
+    else:
+        _write_pil(path, np.ascontiguousarray(_STORED[6](up)), "JPEG", ex, quality=90)
+    assert exif_focal_35mm(path) == 26
+    h, w = read_image(path).shape[:2]
+    assert exif_focal_px(path, w, h) == pytest.approx(26 / 43.2666 * math.hypot(48, 72), rel=1e-4)
+
+
+def test_no_exif_focal_is_none(tmp_path):
+    path = tmp_path / "plain.png"
+    cv2.imwrite(str(path), np.zeros((8, 8, 3), np.uint8))
+    assert exif_focal_35mm(path) is None and exif_focal_px(path, 8, 8) is None
+    (tmp_path / "junk.jpg").write_bytes(b"junk")
+    assert exif_focal_35mm(tmp_path / "junk.jpg") is None
