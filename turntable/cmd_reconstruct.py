@@ -9,6 +9,7 @@ from pathlib import Path
 
 from .cmd_calibrate import add_target_arguments, target_from_args
 from .errors import UserError
+from .images import focal_warning
 from .progress import Progress
 from .reconstruct import ReconstructOptions, reconstruct
 
@@ -25,6 +26,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--resolution", type=int, default=256, metavar="N", help="carving grid resolution (default 256)")
     parser.add_argument("--max-faces", type=int, default=100_000, metavar="N", help="decimate to at most N faces")
     parser.add_argument("--every", type=int, default=1, metavar="N", help="use every N-th frame (videos, dense folders)")
+    parser.add_argument("--frames", type=int, metavar="N",
+                        help="use N frames spread evenly over the input (not with --every)")
     parser.add_argument("--max-rejections", type=int, default=None, metavar="K",
                         help="a voxel survives if at most K silhouettes reject it (default: 0 with --masks, whose "
                              "silhouettes are trusted; 1 with automatic ones, so that one view's mistake cannot cut "
@@ -63,7 +66,7 @@ def options_from_args(args) -> ReconstructOptions:
         input=Path(args.input), out=Path(args.out), spec=spec, step_deg=args.step_deg,
         masks_dir=Path(args.masks) if args.masks else None, cameras=Path(args.cameras) if args.cameras else None,
         intrinsics=Path(args.intrinsics) if args.intrinsics else None, resolution=args.resolution,
-        max_faces=args.max_faces, every=args.every, fusion=not args.no_fusion, overwrite=args.overwrite,
+        max_faces=args.max_faces, every=args.every, frames=args.frames, fusion=not args.no_fusion, overwrite=args.overwrite,
         spawn=args.spawn, export_colmap=args.export_colmap, export_nerfstudio=args.export_nerfstudio,
         max_rejections=args.max_rejections)
 
@@ -77,6 +80,13 @@ def print_summary(res, stream=None) -> None:
         w(f"  skipped         {name}: {why}\n")
     sf = f" ± {s['focal_std_px']:.2f}" if s.get("focal_std_px") is not None else ""
     w(f"  focal length    {s['focal_px']:.2f}{sf} px   ({s['mode']} mode)\n")
+    ex = s.get("exif_focal")
+    if ex:
+        w(f"  EXIF focal      {ex['focal_35mm']:g} mm equivalent = {ex['focal_px']:.1f} px "
+          f"(calibrated {ex['calibrated_vs_exif_pct']:+.1f} %)\n")
+        for line in (ex.get("note"), focal_warning(s["focal_px"], ex)):
+            if line:
+                w(f"  warning         {line}\n")
     if s.get("rms_px") is not None:
         w(f"  edge RMS        {s['rms_px']:.3f} px\n")
     m = s["mesh"]

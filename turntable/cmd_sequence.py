@@ -1,6 +1,6 @@
 """``turntable calibrate-sequence``: one camera and one pose per frame -> cameras.json.
 
-Detects the rings in every image of a folder, calibrates them jointly
+Detects the rings in every image of a folder (or frame of a video), calibrates them jointly
 (:func:`calib.sequence.calibrate_sequence`: a fixed camera and a turning table,
 or a hand-held camera), prints a summary table and writes ``cameras.json``
 atomically. Frames that cannot be used are listed with their reason; the exit
@@ -9,6 +9,7 @@ code is 0 when every frame calibrated, 1 when some were skipped.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 import time
@@ -20,14 +21,18 @@ from calib.types import SequenceCalibration
 from .cameras_io import write_cameras
 from .cmd_calibrate import add_target_arguments, target_from_args
 from .errors import UserError
-from .images import list_images, read_image
+from .frames import load_frames, select_indices
+from .images import exif_focal_report, focal_warning, list_images, read_image
 
 __all__ = ["add_arguments", "run", "calibrate_folder", "summary_table"]
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("folder", metavar="DIR", help="folder of photos in turntable order")
+    parser.add_argument("input", metavar="INPUT", help="folder of photos in turntable order (natural sort), or a video")
     add_target_arguments(parser)
+    parser.add_argument("--every", type=int, default=1, metavar="N", help="use every N-th frame (videos, dense folders)")
+    parser.add_argument("--frames", type=int, metavar="N",
+                        help="use N frames spread evenly over the input (not with --every)")
     parser.add_argument("--step-deg", type=float, metavar="D",
                         help="motorised table: frame k is at k*D degrees (the marks are checked against it)")
     parser.add_argument("--intrinsics", metavar="FILE",
@@ -91,6 +96,13 @@ def _fmt(x, spec: str, none: str = "-") -> str:
     return none if x is None or (isinstance(x, float) and not math.isfinite(x)) else format(x, spec)
 
 
+def _exif_text(exif: dict | None) -> str:
+    if not exif:
+        return ""
+    return (f"   (EXIF: {exif['focal_35mm']:g} mm equivalent = {exif['focal_px']:.1f} px; "
+            f"calibrated {exif['calibrated_vs_exif_pct']:+.1f} %)")
+
+
 def summary_table(seq: SequenceCalibration) -> str:
     """Human summary: per-frame lines, then the shared camera with 1-sigma."""
     m = seq.meta
@@ -103,7 +115,8 @@ def summary_table(seq: SequenceCalibration) -> str:
     lines += ["",
               f"mode            {seq.mode} ({m.get('mode_reason', '')})",
               f"frames          {m.get('frames_used', '?')} used, {m.get('frames_skipped', '?')} skipped",
-              f"focal length    {K[0, 0]:.2f} px ± {_fmt(m.get('focal_std_px'), '.2f', 'fixed')}",
+              f"focal length    {K[0, 0]:.2f} px ± {_fmt(m.get('focal_std_px'), '.2f', 'fixed')}"
+              + _exif_text(m.get("exif_focal")),
               f"principal point ({K[0, 2]:.2f}, {K[1, 2]:.2f}) px ± "
               f"({_fmt(pp_std[0], '.2f', 'fixed')}, {_fmt(pp_std[1], '.2f', 'fixed')})"]
     dist = seq.intrinsics.dist
@@ -122,6 +135,10 @@ def summary_table(seq: SequenceCalibration) -> str:
         lines.append(f"turntable       camera {tt['camera_radius_mm']:.1f} mm from the axis, "
                      f"{tt['camera_height_mm']:.1f} mm above the table; pattern off the axis by "
                      f"({off[0]:.2f}, {off[1]:.2f}) mm")
+    exif = m.get("exif_focal") or {}
+    for line in (exif.get("note"), focal_warning(K[0, 0], exif or None)):
+        if line:
+            lines.append(f"warning         {line}")
     for name, why in m.get("not_estimated", {}).items():
         lines.append(f"note            {name}: {why}")
     for c in m.get("angle_checks", []):
@@ -132,10 +149,17 @@ def summary_table(seq: SequenceCalibration) -> str:
 
 def run(args) -> int:
     spec = target_from_args(args)
-    paths = list_images(args.folder)
+    src = Path(args.input)
     out = Path(args.out)
     if out.is_dir():
         raise UserError(f"--out {out}: is a folder; give a file name such as {out / 'cameras.json'}")
+    select_indices(1, args.every, args.frames)  # argument errors before any reading
+    if src.is_dir():
+        files = list_images(src)
+        paths = [files[i] for i in select_indices(len(files), args.every, args.frames)]
+    else:  # a video (load_frames names what else it is: missing, a single image, unknown)
+        paths = None
+        frames = load_frames(src, args.every, args.frames)
     intr = None
     if args.intrinsics:
         from .intrinsics_io import read_opencv_intrinsics
@@ -144,12 +168,22 @@ def run(args) -> int:
     if args.step_deg is not None and not (math.isfinite(args.step_deg) and args.step_deg != 0):
         raise UserError(f"--step-deg must be a non-zero number, got {args.step_deg}")
     pp = tuple(args.principal_point) if args.principal_point else None
-    seq = calibrate_folder(paths, spec, step_deg=args.step_deg, intrinsics=intr, mode=args.mode,
-                           principal_point_px=pp, distortion="none" if args.no_distortion else "auto",
-                           progress=_progress_printer(sys.stderr, "calibrate-sequence"))
+    kw = dict(step_deg=args.step_deg, intrinsics=intr, mode=args.mode, principal_point_px=pp,
+              distortion="none" if args.no_distortion else "auto",
+              progress=_progress_printer(sys.stderr, "calibrate-sequence"))
+    if paths is not None:
+        seq = calibrate_folder(paths, spec, **kw)
+        exif = exif_focal_report(paths, seq.intrinsics.width, seq.intrinsics.height, seq.intrinsics.focal_px)
+        if exif is not None:
+            seq = dataclasses.replace(seq, meta={**seq.meta, "exif_focal": exif})
+    else:
+        from .sequence_stage import calibrate_frames
+
+        seq = calibrate_frames([(f.name, f.bgr, f.error) for f in frames], spec, **kw)
     for f in seq.frames:
         if not f.ok:
-            print(f"turntable calibrate-sequence: {Path(args.folder) / f.image}: {f.status}", file=sys.stderr)
+            where = src / f.image if paths is not None else f"{src} (frame {f.image})"
+            print(f"turntable calibrate-sequence: {where}: {f.status}", file=sys.stderr)
     write_cameras(out, seq)
     print(summary_table(seq))
     print(f"wrote {out}")

@@ -1,4 +1,4 @@
-"""Input frames: a folder of images (natural order) or a video (every N-th frame)."""
+"""Input frames: a folder of images (natural order) or a video; every N-th frame or N spread evenly."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 from .errors import UserError
 from .images import IMAGE_SUFFIXES, list_images, read_image
 
-__all__ = ["Frame", "load_frames", "VIDEO_SUFFIXES"]
+__all__ = ["Frame", "load_frames", "select_indices", "VIDEO_SUFFIXES"]
 
 VIDEO_SUFFIXES = {".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v"}
 
@@ -25,47 +25,101 @@ class Frame:
     error: str = ""
 
 
-def _video_frames(path: Path, every: int) -> list[Frame]:
+def select_indices(n: int, every: int = 1, count: int | None = None) -> list[int]:
+    """Which of ``n`` frames to use: every ``every``-th (0, N, 2N, ...), or ``count`` spread evenly.
+
+    ``count`` frames are ``floor(i * n / count)`` for i = 0..count-1: equal steps
+    that start at the first frame and stop one step short of the end, so a
+    video of one full turn gives equal angles without repeating the start.
+    ``count >= n`` takes every frame. Giving both is a ``UserError``.
+    """
+    if every < 1:
+        raise UserError(f"--every must be >= 1, got {every}")
+    if count is not None:
+        if count < 1:
+            raise UserError(f"--frames must be >= 1, got {count}")
+        if every != 1:
+            raise UserError("give --every or --frames, not both")
+        if count >= n:
+            return list(range(n))
+        return [i * n // count for i in range(count)]
+    return list(range(0, n, every))
+
+
+def _count_video_frames(path: Path) -> int:
+    cap = cv2.VideoCapture(str(path))
+    n = 0
+    try:
+        while cap.grab():
+            n += 1
+    finally:
+        cap.release()
+    return n
+
+
+def _read_video(path: Path, n: int, every: int, count: int | None) -> tuple[list[Frame], int]:
+    """The selected frames (rotation metadata applied) and how many frames the video really has."""
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
         raise UserError(f"{path}: cannot open video (unsupported format or corrupt)")
+    cap.set(cv2.CAP_PROP_ORIENTATION_AUTO, 1)  # phones film portrait as landscape + a rotation: show it upright
+    wanted = set(select_indices(n, every, count)) if count is not None else None
     frames, i = [], 0
     try:
-        while True:
-            ok, img = cap.read()
-            if not ok:
-                break
-            if i % every == 0:
-                frames.append(Frame(name=f"{path.stem}_{i:05d}.png", bgr=img))
+        while cap.grab():  # grab every frame (cheap), convert only those used
+            if (i in wanted) if wanted is not None else (i % every == 0):
+                ok, img = cap.retrieve()
+                if ok and img is not None:
+                    frames.append(Frame(name=f"{path.stem}_{i:05d}.png", bgr=img))
             i += 1
     finally:
         cap.release()
+    return frames, i
+
+
+def _video_frames(path: Path, every: int, count: int | None = None) -> list[Frame]:
+    """Frames of a video, upright: every ``every``-th, or ``count`` evenly spread (see :func:`select_indices`)."""
+    select_indices(1, every, count)  # argument errors before any decoding
+    n = 0
+    if count is not None:
+        probe = cv2.VideoCapture(str(path))
+        n = int(probe.get(cv2.CAP_PROP_FRAME_COUNT)) if probe.isOpened() else 0
+        probe.release()
+        if n <= 0:  # no (or no usable) frame count in the container: count by reading
+            n = _count_video_frames(path)
+    frames, n_read = _read_video(path, n, every, count)
+    if count is not None and n_read != n and n_read > 0:  # the container's count was wrong: spread again
+        frames, n_read = _read_video(path, n_read, every, count)
     if not frames:
         raise UserError(f"{path}: no frame could be decoded from the video")
     return frames
 
 
-def load_frames(input_path: str | Path, every: int = 1) -> list[Frame]:
-    """All frames of ``input_path``; unreadable images come back with ``error`` set.
+def load_frames(input_path: str | Path, every: int = 1, count: int | None = None) -> list[Frame]:
+    """The frames of ``input_path`` (a folder of images or a video); unreadable images come back with ``error`` set.
+
+    Every ``every``-th frame, or ``count`` frames spread evenly (:func:`select_indices`).
+    Images come upright (EXIF orientation, :func:`turntable.images.read_image`),
+    and so do video frames (the container's rotation metadata).
 
     Raises ``UserError`` for an empty folder, a missing path, an undecodable
     video, or images of different sizes (naming the first odd one).
     """
     p = Path(input_path)
-    if every < 1:
-        raise UserError(f"--every must be >= 1, got {every}")
+    select_indices(1, every, count)  # argument errors first
     if not p.exists():
         raise UserError(f"{p}: not found")
     if p.is_file():
         if p.suffix.lower() in VIDEO_SUFFIXES:
-            frames = _video_frames(p, every)
+            frames = _video_frames(p, every, count)
         elif p.suffix.lower() in IMAGE_SUFFIXES:
             raise UserError(f"{p}: INPUT must be a folder of images or a video, not a single image")
         else:
             raise UserError(f"{p}: not a folder of images nor a video ({', '.join(sorted(VIDEO_SUFFIXES))})")
     else:
         frames = []
-        for f in list_images(p)[::every]:
+        files = list_images(p)
+        for f in (files[i] for i in select_indices(len(files), every, count)):
             try:
                 frames.append(Frame(name=f.name, bgr=read_image(f)))
             except UserError as exc:

@@ -32,7 +32,8 @@ import numpy as np
 from .errors import UserError
 
 __all__ = ["IMAGE_SUFFIXES", "HEIF_SUFFIXES", "read_image", "list_images", "natural_key",
-           "exif_focal_35mm", "exif_focal_px", "focal_px_from_35mm", "FULL_FRAME_DIAGONAL_MM"]
+           "exif_focal_35mm", "exif_focal_px", "focal_px_from_35mm", "FULL_FRAME_DIAGONAL_MM",
+           "FOCAL_DISAGREE_REL", "exif_focal_report", "focal_warning"]
 
 HEIF_SUFFIXES = {".heic", ".heif", ".hif"}
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"} | HEIF_SUFFIXES
@@ -43,6 +44,9 @@ FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)  # 43.267 mm
 _HEIF_BRANDS = {b"heic", b"heix", b"hevc", b"hevx", b"heim", b"heis", b"hevm", b"hevs", b"mif1", b"msf1"}
 _EXIF_IFD = 0x8769
 _TAG_FOCAL_35MM = 0xA405  # FocalLengthIn35mmFilm, mm (integer)
+
+#: Calibrated and EXIF focal lengths further apart than this (relative) are reported.
+FOCAL_DISAGREE_REL = 0.05
 
 
 def natural_key(name: str) -> list:
@@ -197,3 +201,48 @@ def exif_focal_px(path: str | Path, width: int, height: int) -> float | None:
     """
     f35 = exif_focal_35mm(path)
     return None if f35 is None else focal_px_from_35mm(f35, width, height)
+
+
+def exif_focal_report(paths, width: int, height: int, focal_calibrated_px: float) -> dict | None:
+    """The photos' EXIF focal length against the calibrated one; None when no photo has one.
+
+    Parameters
+    ----------
+    paths : list of path
+        The photos (their EXIF headers are read, not their pixels).
+    width, height : int
+        Size of the images as read (upright), pixels.
+    focal_calibrated_px : float
+        The calibrated focal length, pixels.
+
+    Returns
+    -------
+    dict or None
+        ``focal_35mm`` (median over the photos that have one), ``focal_px``,
+        ``photos`` (how many have one), ``calibrated_vs_exif_pct``
+        (100 (f_cal / f_exif - 1)), ``disagrees`` (beyond
+        :data:`FOCAL_DISAGREE_REL`), and ``note`` when the photos' values differ.
+    """
+    f35 = [v for v in (exif_focal_35mm(p) for p in paths) if v is not None]
+    if not f35:
+        return None
+    f35_mm = float(np.median(f35))
+    f_exif = focal_px_from_35mm(f35_mm, width, height)
+    rel = float(focal_calibrated_px) / f_exif - 1.0
+    report = {"focal_35mm": f35_mm, "focal_px": round(f_exif, 2), "photos": len(f35),
+              "calibrated_vs_exif_pct": round(100.0 * rel, 2), "disagrees": bool(abs(rel) > FOCAL_DISAGREE_REL)}
+    if len(set(f35)) > 1:
+        report["note"] = (f"the photos' EXIF focal lengths differ ({', '.join(f'{v:g}' for v in sorted(set(f35)))} "
+                          f"mm equivalent): was the zoom changed between photos?")
+    return report
+
+
+def focal_warning(focal_calibrated_px: float, report: dict | None) -> str | None:
+    """The line to print when calibration and EXIF disagree by more than 5 %; None otherwise."""
+    if report is None or not report["disagrees"]:
+        return None
+    return (f"calibrated focal length {focal_calibrated_px:.1f} px and the EXIF focal length "
+            f"({report['focal_35mm']:g} mm equivalent = {report['focal_px']:.1f} px) disagree by "
+            f"{report['calibrated_vs_exif_pct']:+.1f} % (more than {100 * FOCAL_DISAGREE_REL:.0f} %): check that "
+            f"--r-outer/--r-inner are the radii printed on the sheet and that the photos are neither cropped "
+            f"nor digitally zoomed")

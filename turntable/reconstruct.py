@@ -54,6 +54,7 @@ class ReconstructOptions:
     resolution: int = 256
     max_faces: int = 100_000
     every: int = 1
+    frames: int | None = None  # use this many frames spread evenly over the input (instead of ``every``)
     fusion: bool = True
     overwrite: bool = False
     spawn: bool = False
@@ -336,18 +337,19 @@ def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, reco
     skipped: dict[str, str] = {}
 
     with progress.stage("frames"):
-        frames = load_frames(opts.input, opts.every)
+        frames = load_frames(opts.input, opts.every, opts.frames)
     for f in frames:
         if f.bgr is None:
             skipped[f.name] = f.error
             progress.note(f"skipping {f.name}: {f.error}")
     good = [f for f in frames if f.bgr is not None]
     frame_key = stage_key([f.name for f in frames], [f.bgr.shape for f in good],
-                          [float(f.bgr[::64, ::64].mean()) for f in good], opts.every)
+                          [float(f.bgr[::64, ::64].mean()) for f in good], opts.every, opts.frames)
 
     cam_key = stage_key(frame_key, None if opts.spec is None else opts.spec.__dict__, opts.step_deg,
                         str(opts.intrinsics) if opts.intrinsics else None)
     seq, conics = _stage_cameras(frames, opts, progress, cam_key, out, cache)
+    exif_focal = _exif_focal(good, seq, opts, progress)
     by_name = {fp.image: fp for fp in seq.frames}
     used: list[Frame] = []
     for f in good:
@@ -408,6 +410,7 @@ def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, reco
     summary["working_volume"] = vol_report
     summary["silhouettes"] = {"rejected": rejected, "conservative": conservative}
     summary["failed_checks"] = failed
+    summary["exif_focal"] = exif_focal
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1) + "\n")
     files["summary"] = out / "summary.json"
     if recorder is not None:
@@ -416,6 +419,21 @@ def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, reco
     return ReconstructResult(out=out, files=files, frames_used=names, frames_skipped=skipped,
                              summary=summary, exit_code=exit_code, failed_checks=failed,
                              unreadable=[f.name for f in frames if f.bgr is None])
+
+
+def _exif_focal(frames: list[Frame], seq: SequenceCalibration, opts: ReconstructOptions,
+                progress: Progress) -> dict | None:
+    """The photos' EXIF focal length against the calibrated one (None: a video, or no EXIF focal length)."""
+    from .images import exif_focal_report, focal_warning
+
+    if not Path(opts.input).is_dir():
+        return None
+    intr = seq.intrinsics
+    report = exif_focal_report([_frame_path(opts, f.name) for f in frames], intr.width, intr.height, intr.focal_px)
+    for line in ((report or {}).get("note"), focal_warning(intr.focal_px, report)):
+        if line:
+            progress.note(f"cameras: {line}")
+    return report
 
 
 def _failed_checks(stats, vol_report: dict) -> list[str]:
