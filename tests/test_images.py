@@ -335,3 +335,21 @@ def test_reconstruct_summary_carries_the_exif_check(tmp_path):
             assert "disagree by +8.0 %" in notes[0]
     video_opts = ReconstructOptions(input=tmp_path / "clip.mp4", out=tmp_path / "out", spec=None)
     assert _exif_focal(frames, seq, video_opts, progress) is None
+
+
+def test_calibrate_single_photo_reports_exif_focal(tmp_path, upright_photos, capsys):
+    import json
+
+    from turntable.cli import main
+
+    for name, f35 in (("right.jpg", round(F_TRUE_PX / math.hypot(*SIZE_PORTRAIT) * 43.2666)), ("wrong.jpg", 26)):
+        _write_pil(tmp_path / name, np.ascontiguousarray(_STORED[8](upright_photos[0])), "JPEG", _exif(8, f35=f35),
+                   quality=95)
+    rc = main(["calibrate", str(tmp_path / "right.jpg"), str(tmp_path / "wrong.jpg"), "--r-outer", "80",
+               "--r-inner", "50", "--json"])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    right, wrong = json.loads(cap.out)
+    assert right["exif_focal_px"] == pytest.approx(F_TRUE_PX, rel=0.01)
+    assert wrong["exif_focal_px"] == pytest.approx(focal_px_from_35mm(26, *SIZE_PORTRAIT), abs=0.01)
+    assert "wrong.jpg: warning: calibrated focal length" in cap.err and "right.jpg" not in cap.err

@@ -22,7 +22,7 @@ from calib.target import TargetSpec
 from calib.types import CalibrationError, TargetObservation, ViewCalibration
 
 from .errors import UserError
-from .images import read_image
+from .images import exif_focal_report, focal_warning, read_image
 
 log = logging.getLogger(__name__)
 
@@ -142,6 +142,12 @@ def run(args) -> int:
         try:
             img, obs, cal = calibrate_file(path, spec, args.solver, pp)
             rec = calibration_record(str(path), cal)
+            intr = cal.intrinsics
+            exif = exif_focal_report([path], intr.width, intr.height, intr.focal_px)
+            rec["exif_focal_px"] = exif["focal_px"] if exif else None
+            warning = focal_warning(intr.focal_px, exif)
+            if warning:
+                print(f"turntable calibrate: {path}: warning: {warning}", file=sys.stderr)
         except UserError as exc:  # unreadable file: message already names it
             rec = {"image": str(path), "status": "error", "error": str(exc).split(": ", 1)[-1]}
         except _ImageFailure as exc:
