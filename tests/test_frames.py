@@ -144,3 +144,13 @@ def test_video_frames_spread_evenly(tmp_path):
     for i in range(6):
         _write(folder / f"f{i}.png")
     assert [f.name for f in load_frames(folder, count=3)] == ["f0.png", "f2.png", "f4.png"]
+
+
+@pytest.mark.parametrize("count", [None, 3])
+def test_truncated_video_names_the_file(tmp_path, count):
+    path = tmp_path / "cut.mp4"
+    _write_mp4(path, [np.full((48, 64, 3), 20 * i, np.uint8) for i in range(8)])
+    data = path.read_bytes()
+    path.write_bytes(data[:len(data) // 2])  # the index (moov) is written last: it is gone
+    with pytest.raises(UserError, match=r"cut\.mp4: (cannot open video|no frame could be decoded)"):
+        load_frames(path, count=count)

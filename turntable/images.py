@@ -123,8 +123,10 @@ def read_image(path: str | Path) -> np.ndarray:
         buf = np.frombuffer(data, dtype=np.uint8)
         img = cv2.imdecode(buf, cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH) if buf.size else None
         if img is None:
-            hint = " (HEIC/HEIF by its name, but not by its content)" if path.suffix.lower() in HEIF_SUFFIXES else ""
-            raise UserError(f"{path}: cannot decode image (not an image file, or corrupt){hint}")
+            if path.suffix.lower() in HEIF_SUFFIXES:
+                raise UserError(f"{path}: cannot decode image (named {path.suffix}, but its content is neither "
+                                f"HEIC/HEIF nor another image format)")
+            raise UserError(f"{path}: cannot decode image (not an image file, or corrupt)")
     return _to_bgr8(img, path)
 
 
