@@ -353,3 +353,20 @@ def test_calibrate_single_photo_reports_exif_focal(tmp_path, upright_photos, cap
     assert right["exif_focal_px"] == pytest.approx(F_TRUE_PX, rel=0.01)
     assert wrong["exif_focal_px"] == pytest.approx(focal_px_from_35mm(26, *SIZE_PORTRAIT), abs=0.01)
     assert "wrong.jpg: warning: calibrated focal length" in cap.err and "right.jpg" not in cap.err
+
+
+def test_reconstruct_prints_the_exif_check():
+    from types import SimpleNamespace
+
+    from turntable.cmd_reconstruct import print_summary
+
+    summary = {"frames_used": 3, "focal_px": 1100.0, "mode": "turntable",
+               "exif_focal": {"focal_35mm": 26.0, "focal_px": 1000.0, "photos": 3, "calibrated_vs_exif_pct": 10.0,
+                              "disagrees": True},
+               "mesh": {"vertices": 8, "faces": 12, "watertight": True, "volume_cm3": 1.0, "extent_mm": [1, 1, 1]},
+               "fusion": "off", "time_s": {}, "files": {}}
+    out = io.StringIO()
+    print_summary(SimpleNamespace(summary=summary, out="OUT", frames_skipped={}), out)
+    text = out.getvalue()
+    assert "EXIF focal      26 mm equivalent = 1000.0 px (calibrated +10.0 %)" in text
+    assert "warning         calibrated focal length 1100.0 px and the EXIF focal length" in text
