@@ -13,7 +13,8 @@ What calibration knows replaces a global threshold:
   with the table, so they are static in the table frame: every frame is
   rectified onto the plane ``Y = 0`` with the plane homography and the median
   over frames there is a *table plate* (angle marks, paper, disc), warped back
-  into each frame. A textured object is static in neither: above the plane it
+  into each frame (near the object, from the views that see each point from
+  its own side where the others disagree: see :func:`_table_plate`). A textured object is static in neither: above the plane it
   moves in the rectified frames by parallax, and it turns in the image. A
   plate is trusted at a pixel where most frames agree with it. A plain body of
   revolution is static in the image too (the same picture in every frame):
@@ -25,7 +26,12 @@ What calibration knows replaces a global threshold:
   elsewhere. A pixel agreeing with a trusted plate (or with a darker copy of
   it: a shadow) is background, one far from it is object (unless a plain
   room shows its colour elsewhere); pixels no plate explains are left to the
-  colour models.
+  colour models. A darker copy of the paper is a sure shadow only in a colour
+  the object's sure pixels do not show (the shaded side of a white object is
+  one too), and in a plain room the room plate is sure only in the room's
+  colours (a static plain object is part of it); the rest is left to the
+  colour models and the outline's edges, and a shadow left in a mask is
+  carved by the views that see that part of the paper lit.
 * **Refinement.** GrabCut (colour GMMs + graph cut) starts from that labelling
   on the cylinder's bounding box at reduced resolution; back at full
   resolution the outline pixels are decided by their coverage ``alpha`` between
@@ -186,6 +192,71 @@ def _below_horizon(K, T, box, size_hw) -> np.ndarray:
     return dy < 0 if cam_above else dy > 0
 
 
+_ARC_DEG = 90.0  # where the views disagree, a plane point's table plate comes from those within this azimuth of it
+_ARC_BIN_DEG = 10.0
+
+
+def _table_plate(rect: np.ndarray, seen: np.ndarray, T: np.ndarray, tau: float, radius_px: float):
+    """The table plate: per plane point the median of the rectified frames, and where it is trusted.
+
+    ``rect`` (V, n, n, 3) uint8 and ``seen`` (V, n, n) bool come from
+    :func:`rectify_to_table`. A plane point next to the object is hidden by
+    it from the far side of the turn and seen from its own side (the camera's
+    azimuth about the table axis near the point's). Behind a plainly coloured
+    object the hiding frames all show the same colour, and over a whole turn
+    they can be the majority: a white vase made the paper behind it look like
+    the vase, and so the vase like the paper. So each point also has a median
+    over the views within ``_ARC_DEG`` of its azimuth (at least a third of the
+    sequence: the nearest ones, for a partial turn); where it differs from
+    the median over all views (by more than ``tau``), it replaces it, and the
+    agreement that decides trust is counted over those views. Elsewhere all
+    views count: seen from its own side a point is nearer and less oblique
+    than through a gap of the object from the far side (a chair's back), so
+    the arc alone would explain the latter worse. Within the working volume
+    only (``radius_px`` from the raster's centre): beyond it the plane ``Y =
+    0`` may be air past the turntable's edge, which shows the rim from its
+    own side and the table behind from the other.
+    Returns the plate, its 3x3 envelope (lo, hi) and where it is trusted
+    (uint8): most of the counted views agree and all of them see it.
+    """
+    from .silhouette_checks import camera_azimuths_deg
+
+    V, n = rect.shape[:2]
+    cam = camera_azimuths_deg(T)
+    c = (n - 1) / 2.0
+    ii, jj = np.mgrid[0:n, 0:n]
+    phi = np.degrees(np.arctan2(ii - c, jj - c))  # raster (i, j) is the plane point X = j - c, Z = i - c
+    nb = int(round(360.0 / _ARC_BIN_DEG))
+    bins = np.floor(np.mod(phi + 180.0, 360.0) / _ARC_BIN_DEG).astype(int) % nb
+    bins[np.hypot(ii - c, jj - c) > radius_px] = nb  # beyond the volume: one group, every view
+    least = min(V, max(5, int(math.ceil(V / 3))))
+    plate = np.zeros((n, n, 3), np.uint8)
+    frames_of = []
+    for b in range(nb + 1):
+        centre = -180.0 + (b + 0.5) * _ARC_BIN_DEG
+        d = np.abs(np.mod(cam - centre + 180.0, 360.0) - 180.0)
+        sel = np.flatnonzero(d <= _ARC_DEG) if b < nb else np.arange(V)
+        if len(sel) < least:
+            sel = np.argsort(d, kind="stable")[:least]
+        frames_of.append(sel)
+        pix = bins == b
+        plate[pix] = _median_frames(rect[:, pix][sel])
+    full = _median_frames(rect)
+    same = _colour_dist(plate, full) < tau
+    plate[same] = full[same]
+    lo, hi = _envelope(plate)
+    agree = np.zeros((n, n), np.float32)
+    all_seen = np.ones((n, n), bool)
+    for b, sel in enumerate(frames_of):
+        pix = bins == b
+        agree[pix] = np.mean(_range_dist(rect[:, pix][sel], lo[pix], hi[pix]) < tau, axis=0)
+        all_seen[pix] = seen[:, pix][sel].all(axis=0)
+    agree_full = np.mean([_range_dist(r, lo, hi) < tau for r in rect], axis=0)
+    agree[same] = agree_full[same]
+    all_seen[same] = seen.all(axis=0)[same]
+    return plate, lo, hi, ((agree >= _TRUST) & all_seen).astype(np.uint8)
+
+
 @dataclass(frozen=True)
 class _Plate:
     """A background plate in the box of one frame: median, 3x3 envelope, where it is trusted."""
@@ -214,11 +285,9 @@ class _Plates:
         self.plane_radius = radius_mm + _PLATE_BORDER_MM
         rect = np.stack([rectify_to_table(im, K, t, self.plane_radius, _PLANE_PX_PER_MM) for im, t in zip(images, T)])
         ones = np.ones(images.shape[1:3], np.uint8)
-        seen = np.mean([rectify_to_table(ones, K, t, self.plane_radius, _PLANE_PX_PER_MM) > 0 for t in T], axis=0)
-        self.table = _median_frames(rect)
-        self.table_lo, self.table_hi = _envelope(self.table)
-        agree = np.mean([_range_dist(r, self.table_lo, self.table_hi) < tau for r in rect], axis=0)
-        self.table_trust = ((agree >= _TRUST) & (seen == 1.0)).astype(np.uint8)
+        seen = np.stack([rectify_to_table(ones, K, t, self.plane_radius, _PLANE_PX_PER_MM) > 0 for t in T])
+        self.table, self.table_lo, self.table_hi, self.table_trust = _table_plate(rect, seen, T, tau,
+                                                                                  radius_mm * _PLANE_PX_PER_MM)
         self.K, self.box = K, box
 
     def table_in_frame(self, T: np.ndarray, size_hw) -> _Plate:
@@ -262,7 +331,7 @@ def _plate_distances(img, room: _Plate, table: _Plate) -> tuple[np.ndarray, ...]
 
 
 def _initial_labels(img, region, room: _Plate, table: _Plate, tau, room_colours,
-                    dist: tuple[np.ndarray, ...] | None = None) -> _Evidence:
+                    dist: tuple[np.ndarray, ...] | None = None, room_hard: np.ndarray | None = None) -> _Evidence:
     """GrabCut labels from the plates, and what each pixel's plates say (:class:`_Evidence`).
 
     ``dist``: :func:`_plate_distances` of these plates' colours, when already computed.
@@ -282,11 +351,6 @@ def _initial_labels(img, region, room: _Plate, table: _Plate, tau, room_colours,
     shadow = np.minimum(s_room, s_tab) < tau
     explained = d < tau
     trusted = room.trust | table.trust
-    hard = (d_tab < tau) | (s_tab < tau) | ((d_room < tau) & room.strong)
-    k3 = np.ones((3, 3), np.uint8)
-    labels = np.full(img.shape[:2], cv2.GC_PR_FGD, np.uint8)
-    labels[explained | shadow] = cv2.GC_PR_BGD
-    labels[cv2.erode(hard.astype(np.uint8), k3) > 0] = cv2.GC_BGD  # a plate explains the whole neighbourhood
     # A sure object seed must not have a colour a plain room shows elsewhere: a plate polluted by
     # the object in many frames disagrees with the plain backdrop it hides (real photos). A room
     # of many colours (clutter) says little by its colours; an unknown one (the volume fills the
@@ -294,6 +358,19 @@ def _initial_labels(img, region, room: _Plate, table: _Plate, tau, room_colours,
     sure = trusted & (d > 3.0 * tau) & ~shadow
     if room_colours.mean() < _PLAIN_ROOM or room_colours.all():
         sure &= ~_in_set(img, room_colours)
+    # A darker copy of the table plate is a shadow on the paper for sure only in a colour the object
+    # does not show: the shaded side of a grey or white object on white paper is a darker copy of
+    # the paper too (white vase: the whole body below the horizon was taken for shadow).
+    n_sure = int(sure.sum())
+    sure_colours = _colour_set(img[sure], min_count=max(3, int(0.002 * n_sure))) if n_sure >= 50 else None
+    table_shadow = s_tab < tau
+    if sure_colours is not None:
+        table_shadow &= ~_in_set(img, sure_colours)
+    hard = (d_tab < tau) | table_shadow | ((d_room < tau) & (room.strong if room_hard is None else room_hard))
+    k3 = np.ones((3, 3), np.uint8)
+    labels = np.full(img.shape[:2], cv2.GC_PR_FGD, np.uint8)
+    labels[explained | shadow] = cv2.GC_PR_BGD
+    labels[cv2.erode(hard.astype(np.uint8), k3) > 0] = cv2.GC_BGD  # a plate explains the whole neighbourhood
     labels[sure] = cv2.GC_FGD
     labels[~region] = cv2.GC_BGD
     background = np.where(table.trust[..., None], table.mid, room.mid)
@@ -445,7 +522,12 @@ def _frame_mask(img, region, base, plates: _Plates, T, tau, verified: bool) -> _
     room = plates.room_verified if verified else plates.room
     table = plates.table_in_frame(T, (h, w))
     dist = _plate_distances(img, room, table)  # the same for plates.room and plates.room_verified
-    ev = _initial_labels(img, region, room, table, tau, plates.room_colours, dist)
+    # In a plain room the room plate's explanations are hard only in the room's own colours: inside
+    # the volume's image a static object (a plain body of revolution) is part of the plate. (A
+    # cluttered room shows too many colours to tell; there the second pass below handles it.)
+    plain = plates.room_colours.mean() < _PLAIN_ROOM
+    ev = _initial_labels(img, region, room, table, tau, plates.room_colours, dist,
+                         plates.room_verified.strong if plain else None)
     prob = _grabcut(img, ev.labels)
     scale = math.sqrt(h * w / _WORK_PX)
     mask = _refine_outline(prob, ev.explained, ev.disagrees, band_px=max(2, int(math.ceil(scale)) + 1)) & region
