@@ -20,6 +20,11 @@ Pipeline (``detect_rings``):
    then from the edge conics fitted to the first pass. Robust conic fits drop
    far outliers (Sampson > 3 px). The best pairs are tried in turn; the refined
    centre-line conics must pass the pencil tests with tight tolerances.
+   The first pass runs on the crop area-reduced ``q`` times when the outer ring
+   is large (semi-major axis ``a`` >= ``PASS1_RING_PX``, ``q = floor(a / PASS1_RING_PX)``:
+   12-48 MP photos), so its search windows, gaps and blur, tuned on rings a few
+   hundred pixels across, keep their meaning; the second pass is always at full
+   resolution. Below that size (1280x960 photos) nothing changes.
 
 :func:`edge_conic` predicts the conic of any radius ``r`` from the two
 centre-line conics scaled alike (``C_o / s``):
@@ -51,6 +56,7 @@ RATIO_TOL = 0.005           # refined pair: relative tolerance on the radius rat
 MAX_PAIRS = 3               # coarse pairs tried at full resolution, best first
 MAX_OUTLIER_PX = 3.0        # Sampson distance beyond which an edge point is dropped
 MIN_EDGE_POINTS = 30
+PASS1_RING_PX = 640         # fine pass 1 runs on the crop reduced q = floor(a_outer / this) times
 
 
 def pencil_ratio(C_big: np.ndarray, C_small: np.ndarray) -> tuple[float, float, float]:
@@ -319,13 +325,23 @@ def _fine(grey: np.ndarray, Co: np.ndarray, Ci: np.ndarray, spec: TargetSpec,
           spacing_px: float = 2.0, gamma: float = 2.2) -> TargetObservation:
     """Full-resolution edges of the pair of coarse ring conics ``Co``, ``Ci`` (module docstring, 4.)."""
     h, w = grey.shape
-    gf, origin = _fine_roi(grey, Co, gamma)
+    lin, origin = _fine_roi(grey, Co, gamma)
+    gf = _smooth(lin)
     radii = {"outer": spec.r_outer_mm, "inner": spec.r_inner_mm}
-    coarse = {"outer": _shift(Co, origin), "inner": _shift(Ci, origin)}
+    # pass 1 on the ROI reduced q times, so that the ring is about as many pixels across as the
+    # detector was tuned for (module docstring, 4.); q = 1 (no reduction) up to PASS1_RING_PX
+    q = max(1, int(conic_to_ellipse(Co).a // PASS1_RING_PX))
+    g1 = gf if q == 1 else _smooth(_reduce(lin, q))
+    A = _reduce_map(q)  # ROI pixel -> reduced ROI pixel (pixel centres, README)
+    Ainv = np.linalg.inv(A)
     fits = {}
     for name, R in radii.items():  # pass 1: each ring on its own, from the coarse conic
-        found = _search_scaled(gf, coarse[name], spec.stroke_mm / 2.0 / R, spacing_px=4.0)
-        fits[name] = _fit_ring(found, name)
+        C1 = _shift(Co if name == "outer" else Ci, origin)
+        if q > 1:
+            C1 = normalize_conic(Ainv.T @ C1 @ Ainv)
+        fits[name] = _fit_ring(_search_scaled(g1, C1, spec.stroke_mm / 2.0 / R, spacing_px=4.0), name)
+        if q > 1:
+            fits[name] = tuple(normalize_conic(A.T @ C @ A) for C in fits[name][:3])
     for name in radii:  # pass 2: from the fitted edge conics
         C_in, C_out, C_mid = fits[name][:3]
         w_px = _median_width(C_mid, C_in, C_out)
@@ -357,7 +373,7 @@ def _fine(grey: np.ndarray, Co: np.ndarray, Ci: np.ndarray, spec: TargetSpec,
 
 
 def _fine_roi(grey: np.ndarray, C_outer: np.ndarray, gamma: float = 2.2) -> tuple[np.ndarray, np.ndarray]:
-    """Crop of ``grey`` around the outer ring in linear light (float32, lightly smoothed), and its origin (u0, v0).
+    """Crop of ``grey`` around the outer ring in linear light (float32), and its origin (u0, v0).
 
     Pixel area and optical blur average light linearly, so an edge is the 50 %
     crossing of a blurred step in linear light, not in the gamma-encoded grey
@@ -370,8 +386,23 @@ def _fine_roi(grey: np.ndarray, C_outer: np.ndarray, gamma: float = 2.2) -> tupl
     u1 = int(min(w, np.ceil(e.center_px[0] + e.a + pad) + 1))
     v1 = int(min(h, np.ceil(e.center_px[1] + e.a + pad) + 1))
     lut = (255.0 * np.power(np.arange(256) / 255.0, gamma)).astype(np.float32)
-    roi = lut[grey[v0:v1, u0:u1]]
-    return cv2.GaussianBlur(roi, (0, 0), 0.7), np.array([u0, v0], float)
+    return lut[grey[v0:v1, u0:u1]], np.array([u0, v0], float)
+
+
+def _smooth(lin: np.ndarray) -> np.ndarray:
+    """The light smoothing the edge search expects (0.7 px Gaussian)."""
+    return cv2.GaussianBlur(lin, (0, 0), 0.7)
+
+
+def _reduce(lin: np.ndarray, q: int) -> np.ndarray:
+    """``lin`` area-averaged ``q`` times (linear light: the average is what a coarser sensor would see)."""
+    h, w = lin.shape
+    return cv2.resize(lin[: h // q * q, : w // q * q], (w // q, h // q), interpolation=cv2.INTER_AREA)
+
+
+def _reduce_map(q: int) -> np.ndarray:
+    """Homogeneous map of full pixel centres to those of the image reduced ``q`` times: u' = (u + 0.5) / q - 0.5."""
+    return np.array([[1.0 / q, 0, 0.5 / q - 0.5], [0, 1.0 / q, 0.5 / q - 0.5], [0, 0, 1.0]])
 
 
 def _shift(C: np.ndarray, origin) -> np.ndarray:
