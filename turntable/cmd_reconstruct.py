@@ -12,6 +12,7 @@ from .errors import UserError
 from .images import focal_warning
 from .progress import Progress
 from .reconstruct import ReconstructOptions, reconstruct
+from .worksize import parse_work_size
 
 
 def add_arguments(parser) -> None:
@@ -32,6 +33,11 @@ def add_arguments(parser) -> None:
                         help="a voxel survives if at most K silhouettes reject it (default: 0 with --masks, whose "
                              "silhouettes are trusted; 1 with automatic ones, so that one view's mistake cannot cut "
                              "the object)")
+    parser.add_argument("--work-size", metavar="N|full",
+                        help="long side in pixels of the images silhouettes, stereo and colour work on (rings and "
+                             "calibration always use the full photos); 'full' for no reduction (default: photos "
+                             "up to 1.3 MP whole, larger ones reduced to about 1.3 MP, keeping the outer ring at "
+                             "least 480 px across)")
     parser.add_argument("--no-fusion", action="store_true", help="keep the visual hull only (no stereo)")
     parser.add_argument("--export-colmap", action="store_true", help="also write a COLMAP text model to OUT/colmap")
     parser.add_argument("--export-nerfstudio", action="store_true", help="also write OUT/transforms.json")
@@ -48,6 +54,7 @@ def options_from_args(args) -> ReconstructOptions:
     if args.max_faces < 100:
         raise UserError(f"--max-faces must be at least 100, got {args.max_faces}")
     # fail before the long stages, not after them
+    work_size = parse_work_size(getattr(args, "work_size", None))
     if args.r_outer is None or args.r_inner is None:
         if args.cameras is None:
             raise UserError("--r-outer and --r-inner are required: the printed rings calibrate the cameras "
@@ -68,7 +75,7 @@ def options_from_args(args) -> ReconstructOptions:
         intrinsics=Path(args.intrinsics) if args.intrinsics else None, resolution=args.resolution,
         max_faces=args.max_faces, every=args.every, frames=args.frames, fusion=not args.no_fusion, overwrite=args.overwrite,
         spawn=args.spawn, export_colmap=args.export_colmap, export_nerfstudio=args.export_nerfstudio,
-        max_rejections=args.max_rejections)
+        max_rejections=args.max_rejections, work_size=work_size)
 
 
 def print_summary(res, stream=None) -> None:
@@ -89,6 +96,12 @@ def print_summary(res, stream=None) -> None:
                 w(f"  warning         {line}\n")
     if s.get("rms_px") is not None:
         w(f"  edge RMS        {s['rms_px']:.3f} px\n")
+    ws = s.get("work_size")
+    if ws:
+        full = ("full size" if (ws["width"], ws["height"]) == (ws["full_width"], ws["full_height"]) else
+                f"{ws['scale']:.3f} of {ws['full_width']} x {ws['full_height']}")
+        w(f"  work size       {ws['width']} x {ws['height']} px ({full}; {ws['why']}); rings and calibration "
+          f"at full size\n")
     m = s["mesh"]
     ext = " x ".join(f"{v:.1f}" for v in m["extent_mm"])
     w(f"  mesh            {m['vertices']} vertices, {m['faces']} faces, "

@@ -76,20 +76,42 @@ def calibrate_folder(paths, spec: TargetSpec, *, step_deg=None, intrinsics=None,
                      principal_point_px=None, distortion="auto", progress=None) -> SequenceCalibration:
     """Read ``paths`` (unreadable ones are reported as skipped frames) and calibrate them.
 
-    ``UserError`` when nothing can be calibrated; see
-    :func:`turntable.sequence_stage.calibrate_frames` for the rest.
+    One photo at a time: its rings are found at full resolution, and only a
+    copy at the default work size (:func:`turntable.worksize.choose_work_size`;
+    photos up to 1.3 MP whole) is kept to read the angle marks from.
+    ``UserError`` when nothing can be calibrated or the photos differ in size;
+    see :func:`turntable.sequence_stage.calibrate_frames` for the rest.
     """
-    from .sequence_stage import calibrate_frames
+    from .sequence_stage import calibrate_detected, detect_and_reduce
+    from .worksize import choose_work_size
 
-    frames = []
-    for p in paths:
-        p = Path(p)
-        try:
-            frames.append((p.name, read_image(p), ""))
-        except UserError as exc:
-            frames.append((p.name, None, str(exc).split(": ", 1)[-1]))
-    return calibrate_frames(frames, spec, step_deg=step_deg, intrinsics=intrinsics, mode=mode,
-                            principal_point_px=principal_point_px, distortion=distortion, progress=progress)
+    def frames():
+        size = None
+        for p in map(Path, paths):
+            try:
+                img = read_image(p)
+            except UserError as exc:
+                yield p.name, None, str(exc).split(": ", 1)[-1]
+                continue
+            if size is not None and img.shape[:2] != size:
+                raise UserError(f"frames have different sizes: {p} is {img.shape[1]}x{img.shape[0]}, "
+                                f"the first is {size[1]}x{size[0]}")
+            size = img.shape[:2]
+            yield p.name, img, ""
+
+    if not paths:
+        raise UserError("no frames to calibrate")
+    n = len(paths)
+    tick = (lambda done, total: progress(done, 2 * n)) if progress is not None else None
+    tick2 = (lambda done, total: progress(n + done, 2 * n)) if progress is not None else None
+    pp = intrinsics.principal_point_px if intrinsics is not None else principal_point_px
+    det = detect_and_reduce(frames(), spec, lambda size, ring, name: choose_work_size(size, ring),
+                            principal_point_px=pp, progress=tick, total=n,
+                            expected_size=None if intrinsics is None else (intrinsics.width, intrinsics.height))
+    return calibrate_detected(det.observations, det.failures, det.names, det.images, spec,
+                              marks_map=None if det.work is None else det.work.S, step_deg=step_deg,
+                              intrinsics=intrinsics, mode=mode, principal_point_px=principal_point_px,
+                              distortion=distortion, progress=tick2)
 
 
 def _fmt(x, spec: str, none: str = "-") -> str:

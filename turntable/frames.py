@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 import cv2
 import numpy as np
@@ -11,7 +12,7 @@ import numpy as np
 from .errors import UserError
 from .images import IMAGE_SUFFIXES, list_images, read_image
 
-__all__ = ["Frame", "load_frames", "select_indices", "VIDEO_SUFFIXES"]
+__all__ = ["Frame", "load_frames", "iter_frames", "select_indices", "VIDEO_SUFFIXES"]
 
 VIDEO_SUFFIXES = {".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v"}
 
@@ -95,6 +96,54 @@ def _video_frames(path: Path, every: int, count: int | None = None) -> list[Fram
     return frames
 
 
+def iter_frames(input_path: str | Path, every: int = 1, count: int | None = None) -> Iterator[Frame]:
+    """The frames of ``input_path`` one at a time, each image decoded when it is reached.
+
+    Same frames, order, names and errors as :func:`load_frames` (which see),
+    but at most one photo of a folder is held at a time: callers that keep a
+    reduced copy (``reconstruct``) never hold every frame at full resolution.
+    Video frames are decoded together (as :func:`load_frames` does) and handed
+    out one by one. Frames of different sizes raise ``UserError`` when the
+    first odd one is reached; no readable frame at all raises it at the end.
+    """
+    p = Path(input_path)
+    select_indices(1, every, count)  # argument errors first
+    if not p.exists():
+        raise UserError(f"{p}: not found")
+    if p.is_file():
+        if p.suffix.lower() in VIDEO_SUFFIXES:
+            source: Iterator[Frame] = iter(_video_frames(p, every, count))
+        elif p.suffix.lower() in IMAGE_SUFFIXES:
+            raise UserError(f"{p}: INPUT must be a folder of images or a video, not a single image")
+        else:
+            raise UserError(f"{p}: not a folder of images nor a video ({', '.join(sorted(VIDEO_SUFFIXES))})")
+    else:
+        files = list_images(p)
+        source = (_read_one(f) for f in (files[i] for i in select_indices(len(files), every, count)))
+    first: Frame | None = None
+    n = 0
+    for f in source:
+        n += 1
+        if f.bgr is not None:
+            if first is None:
+                first = f
+            elif f.bgr.shape[:2] != first.bgr.shape[:2]:
+                h, w = first.bgr.shape[:2]
+                raise UserError(f"{p}: images have different sizes: {first.name} is {w}x{h}, "
+                                f"{f.name} is {f.bgr.shape[1]}x{f.bgr.shape[0]}; all frames must come from one "
+                                f"camera setting")
+        yield f
+    if first is None:
+        raise UserError(f"{p}: none of the {n} images could be read")
+
+
+def _read_one(path: Path) -> Frame:
+    try:
+        return Frame(name=path.name, bgr=read_image(path))
+    except UserError as exc:
+        return Frame(name=path.name, bgr=None, error=str(exc).split(": ", 1)[-1])
+
+
 def load_frames(input_path: str | Path, every: int = 1, count: int | None = None) -> list[Frame]:
     """The frames of ``input_path`` (a folder of images or a video); unreadable images come back with ``error`` set.
 
@@ -105,31 +154,4 @@ def load_frames(input_path: str | Path, every: int = 1, count: int | None = None
     Raises ``UserError`` for an empty folder, a missing path, an undecodable
     video, or images of different sizes (naming the first odd one).
     """
-    p = Path(input_path)
-    select_indices(1, every, count)  # argument errors first
-    if not p.exists():
-        raise UserError(f"{p}: not found")
-    if p.is_file():
-        if p.suffix.lower() in VIDEO_SUFFIXES:
-            frames = _video_frames(p, every, count)
-        elif p.suffix.lower() in IMAGE_SUFFIXES:
-            raise UserError(f"{p}: INPUT must be a folder of images or a video, not a single image")
-        else:
-            raise UserError(f"{p}: not a folder of images nor a video ({', '.join(sorted(VIDEO_SUFFIXES))})")
-    else:
-        frames = []
-        files = list_images(p)
-        for f in (files[i] for i in select_indices(len(files), every, count)):
-            try:
-                frames.append(Frame(name=f.name, bgr=read_image(f)))
-            except UserError as exc:
-                frames.append(Frame(name=f.name, bgr=None, error=str(exc).split(": ", 1)[-1]))
-    good = [f for f in frames if f.bgr is not None]
-    if not good:
-        raise UserError(f"{p}: none of the {len(frames)} images could be read")
-    h, w = good[0].bgr.shape[:2]
-    for f in good:
-        if f.bgr.shape[:2] != (h, w):
-            raise UserError(f"{p}: images have different sizes: {good[0].name} is {w}x{h}, "
-                            f"{f.name} is {f.bgr.shape[1]}x{f.bgr.shape[0]}; all frames must come from one camera setting")
-    return frames
+    return list(iter_frames(input_path, every, count))

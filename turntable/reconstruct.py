@@ -33,9 +33,10 @@ from calib.types import SequenceCalibration
 
 from .cameras_io import atomic_write_text, cameras_to_dict, read_cameras, write_cameras
 from .errors import UserError
-from .frames import Frame, load_frames
+from .frames import Frame, iter_frames
 from .progress import Progress
 from .stagecache import StageCache, stage_key
+from .worksize import WorkSize, choose_work_size
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +62,7 @@ class ReconstructOptions:
     export_colmap: bool = False
     export_nerfstudio: bool = False
     max_rejections: int | None = None  # None: 0 with masks_dir (trusted), 1 with automatic silhouettes
+    work_size: int | None = None  # long side of the work images, pixels; 0: full size; None: the default policy
 
 
 @dataclass
@@ -90,15 +92,19 @@ def _prepare_out(out: Path, overwrite: bool) -> None:
     out.mkdir(parents=True, exist_ok=True)
 
 
-def _read_masks(masks_dir: Path, names: list[str], size: tuple[int, int]) -> np.ndarray:
-    """Masks matched to frames by file stem; any image format; non-zero = object."""
+def _read_masks(masks_dir: Path, names: list[str], ws: WorkSize) -> np.ndarray:
+    """Masks matched to frames by file stem, as large as the photos; any image format; > 127 = object.
+
+    Returned at the work size (V, h, w) bool: each mask is reduced (area average,
+    then > 0.5) as it is read.
+    """
     from .images import IMAGE_SUFFIXES, read_image
 
     if not masks_dir.is_dir():
         raise UserError(f"--masks {masks_dir}: not a folder")
     by_stem = {p.stem: p for p in masks_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
-    W, H = size
-    out = np.zeros((len(names), H, W), bool)
+    (W, H), (w, h) = ws.full, ws.work
+    out = np.zeros((len(names), h, w), bool)
     for i, n in enumerate(names):
         p = by_stem.get(Path(n).stem)
         if p is None:
@@ -106,16 +112,18 @@ def _read_masks(masks_dir: Path, names: list[str], size: tuple[int, int]) -> np.
         m = read_image(p)
         if m.shape[:2] != (H, W):
             raise UserError(f"{p}: mask is {m.shape[1]}x{m.shape[0]}, frame {n} is {W}x{H}")
-        out[i] = m.max(axis=2) > 127
+        obj = np.where(m.max(axis=2) > 127, np.uint8(255), np.uint8(0))
+        out[i] = ws.reduce(obj) > 127
     return out
 
 
-def _undistort(images: list[np.ndarray], seq: SequenceCalibration) -> list[np.ndarray]:
+def _undistort(images: list[np.ndarray], seq: SequenceCalibration, ws: WorkSize) -> list[np.ndarray]:
+    """Work images without lens distortion (same camera matrix ``ws.K(K)``; the coefficients are scale-free)."""
     intr = seq.intrinsics
     if not intr.has_distortion:
         return images
-    W, H = intr.width, intr.height
-    m1, m2 = cv2.initUndistortRectifyMap(intr.K, intr.dist, None, intr.K, (W, H), cv2.CV_32FC1)
+    K = ws.K(intr.K)
+    m1, m2 = cv2.initUndistortRectifyMap(K, intr.dist, None, K, tuple(ws.work), cv2.CV_32FC1)
     return [cv2.remap(im, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) for im in images]
 
 
@@ -126,19 +134,14 @@ def _frame_path(opts: ReconstructOptions, name: str) -> Path:
 
 
 # --------------------------------------------------------------------------- stages
-def _stage_cameras(frames: list[Frame], opts: ReconstructOptions, progress: Progress, key: str,
-                   out: Path, cache: StageCache) -> tuple[SequenceCalibration, dict]:
-    """The sequence calibration and the detected ring conics per frame name (for the recording)."""
+def _known_cameras(opts: ReconstructOptions, progress: Progress, key: str, out: Path,
+                   cache: StageCache) -> tuple[SequenceCalibration | None, dict]:
+    """Cameras that need no ring detection: ``--cameras``, or this run's ``cameras.json`` from before."""
     cam_path = out / "cameras.json"
     if opts.cameras is not None:
         seq = read_cameras(opts.cameras)
         # cameras.json may name frames with a folder ("images/frame_000.jpg"): match by file name
         seq = replace(seq, frames=tuple(replace(fp, image=Path(fp.image).name) for fp in seq.frames))
-        names = {fp.image for fp in seq.frames}
-        missing = [f.name for f in frames if f.bgr is not None and f.name not in names]
-        if missing:
-            raise UserError(f"--cameras {opts.cameras}: no camera for frame(s) {', '.join(missing[:5])}")
-        write_cameras(cam_path, seq)
         return seq, {}
     if cam_path.is_file() and not opts.overwrite:
         try:
@@ -149,25 +152,104 @@ def _stage_cameras(frames: list[Frame], opts: ReconstructOptions, progress: Prog
                 return seq, _conics_from_arrays(hit)
         except UserError:
             pass
-    from .sequence_stage import calibrate_frames
+    return None, {}
+
+
+def _ring_px_from_camera(seq: SequenceCalibration, name: str, spec: TargetSpec | None) -> float | None:
+    """Long axis (pixels) of the outer ring's image in frame ``name`` of known cameras (None: unknown)."""
+    fp = next((fp for fp in seq.frames if fp.image == name and fp.ok), None)
+    if fp is None or spec is None:
+        return None
+    th = np.linspace(0.0, 2.0 * np.pi, 360, endpoint=False)
+    r = spec.r_outer_mm
+    pts = np.column_stack([r * np.cos(th), np.zeros_like(th), r * np.sin(th), np.ones_like(th)])
+    pc = (fp.T_cam_table @ pts.T)[:3]
+    if np.any(pc[2] <= 0):
+        return None
+    uv = (seq.intrinsics.K @ pc)[:2] / pc[2]
+    return float(np.max(np.linalg.norm(uv[:, :180] - uv[:, 180:], axis=0)))
+
+
+def _load(opts: ReconstructOptions, progress: Progress, seq: SequenceCalibration | None):
+    """Decode every frame once: the rings at full resolution (when ``seq`` is None), the pixels at the work size.
+
+    The work size is chosen on the first readable frame, from its size and the
+    outer ring's size in it (:func:`turntable.worksize.choose_work_size`; the
+    pixel count alone where its rings are not found).
+    Returns :class:`turntable.sequence_stage.DetectedFrames`.
+    """
+    from .sequence_stage import detect_and_reduce
+
+    intr = None
+    if seq is None and opts.intrinsics is not None:
+        from .intrinsics_io import read_opencv_intrinsics
+
+        intr = read_opencv_intrinsics(opts.intrinsics)
+
+    def choose(size, ring_px, name):
+        if ring_px is None and seq is not None:
+            ring_px = _ring_px_from_camera(seq, name, opts.spec)
+        ws = choose_work_size(size, ring_px, opts.work_size)
+        progress.note(f"work size: {ws.describe()}")
+        return ws
+
+    frames = ((f.name, f.bgr, f.error) for f in iter_frames(opts.input, opts.every, opts.frames))
+    with progress.stage("frames" if seq is not None else "frames and rings") as tick:
+        return detect_and_reduce(frames, opts.spec if seq is None else None, choose,
+                                 principal_point_px=None if intr is None else intr.principal_point_px,
+                                 expected_size=None if intr is None else (intr.width, intr.height),
+                                 progress=tick, total=_count_inputs(opts))
+
+
+def _count_inputs(opts: ReconstructOptions) -> int:
+    """How many frames will be read (a folder: known; a video: 0, unknown until read)."""
+    from .frames import select_indices
+    from .images import list_images
+
+    p = Path(opts.input)
+    if not p.is_dir():
+        return 0
+    return len(select_indices(len(list_images(p)), opts.every, opts.frames))
+
+
+def _input_key(opts: ReconstructOptions) -> str:
+    """What the inputs are, without decoding them: the selected files' names, sizes and times."""
+    from .frames import select_indices
+    from .images import list_images
+
+    p = Path(opts.input)
+    try:
+        files = [list_images(p)[i] for i in select_indices(len(list_images(p)), opts.every, opts.frames)] \
+            if p.is_dir() else [p]
+        stats = [(f.name, f.stat().st_size, f.stat().st_mtime_ns) for f in files]
+    except (UserError, OSError):
+        stats = []  # iter_frames will say what is wrong with the input
+    return stage_key(str(p.resolve()) if not p.is_dir() else "", stats, opts.every, opts.frames)
+
+
+def _stage_cameras(loaded, opts: ReconstructOptions, progress: Progress, key: str,
+                   out: Path, cache: StageCache) -> tuple[SequenceCalibration, dict]:
+    """The sequence calibration from the rings found at full resolution, and the ring conics per frame name."""
+    from .sequence_stage import calibrate_detected
 
     intr = None
     if opts.intrinsics is not None:
         from .intrinsics_io import read_opencv_intrinsics
 
         intr = read_opencv_intrinsics(opts.intrinsics)
-    observations: list = []
+    observations = loaded.observations
     with progress.stage("cameras") as tick:
-        try:
-            seq = calibrate_frames([(f.name, f.bgr, f.error) for f in frames], opts.spec, step_deg=opts.step_deg,
-                                   intrinsics=intr, progress=tick, observations_out=observations)
+        try:  # the angle marks are read on the work images (they are sampled in millimetres)
+            seq = calibrate_detected(observations, loaded.failures, loaded.names, loaded.images, opts.spec,
+                                     marks_map=loaded.work.S, step_deg=opts.step_deg, intrinsics=intr,
+                                     progress=tick)
         except UserError as exc:
             raise UserError(f"{opts.input}: {exc}") from None
     seq = replace(seq, meta={**seq.meta, "stage_key": key})
-    names = [f.name for f, o in zip(frames, observations) if o is not None]
+    names = [n for n, o in zip(loaded.names, observations) if o is not None]
     conics = np.array([[o.conics["outer"], o.conics["inner"]] for o in observations if o is not None]).reshape(-1, 2, 3, 3)
     cache.save("detections", key, names=np.array(names, dtype=str), conics=conics)
-    write_cameras(cam_path, seq)
+    write_cameras(out / "cameras.json", seq)
     return seq, _conics_from_arrays({"names": np.array(names, dtype=str), "conics": conics})
 
 
@@ -184,7 +266,7 @@ class _Silhouettes:
     status: list[str]  # "ok", "conservative: <reason>" (kept) or "rejected: <reason>" (dropped)
 
 
-def _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress, vol) -> _Silhouettes:
+def _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress, vol, ws) -> _Silhouettes:
     hit = cache.load("silhouettes", key)
     if hit is not None:
         progress.note("silhouettes: reused")
@@ -193,8 +275,7 @@ def _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress, vol
         return _Silhouettes(masks, unknown, [str(s) for s in hit["status"]])
     with progress.stage("silhouettes") as tick:
         if opts.masks_dir is not None:
-            H, W = images_rgb[0].shape[:2]
-            masks = _read_masks(opts.masks_dir, names, (W, H))
+            masks = _read_masks(opts.masks_dir, names, ws)
             unknown = np.zeros_like(masks)
             status = ["ok" if m.any() else "rejected: the mask is empty" for m in masks]
         else:
@@ -255,7 +336,7 @@ def _stage_hull(masks, K, Ts, opts, cache, key, progress, vol):
     return hull
 
 
-def _silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progress):
+def _silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progress, ws):
     """Silhouettes and hull in a working volume grown until the object fits (or the view ends).
 
     Returns (silhouettes, kept indices, rejected, conservative, hull, volume, volume report).
@@ -284,7 +365,7 @@ def _silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progre
     for _ in range(32):  # each pass grows the volume or ends the loop; the bound is a safety net
         key = stage_key(sil_key, vol.key()) if automatic else sil_key  # user masks do not depend on it
         if key != sil_for:
-            sil, sil_for = _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress, vol), key
+            sil, sil_for = _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress, vol, ws), key
         keep, rejected, conservative = _silhouette_verdicts(names, sil.status)
         if len(keep) < MIN_VIEWS:
             return sil, keep, rejected, conservative, None, vol, {}
@@ -336,19 +417,23 @@ def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, reco
     cache = StageCache(out, enabled=not opts.overwrite)
     skipped: dict[str, str] = {}
 
-    with progress.stage("frames"):
-        frames = load_frames(opts.input, opts.every, opts.frames)
+    cam_key = stage_key(_input_key(opts), None if opts.spec is None else opts.spec.__dict__, opts.step_deg,
+                        str(opts.intrinsics) if opts.intrinsics else None)
+    seq, conics = _known_cameras(opts, progress, cam_key, out, cache)
+    loaded = _load(opts, progress, seq)  # every frame decoded once; only the work size is kept
+    ws = loaded.work
+    frames = [Frame(n, im, "" if im is not None else why) for n, im, why in
+              zip(loaded.names, loaded.images, loaded.failures)]
     for f in frames:
         if f.bgr is None:
             skipped[f.name] = f.error
             progress.note(f"skipping {f.name}: {f.error}")
     good = [f for f in frames if f.bgr is not None]
-    frame_key = stage_key([f.name for f in frames], [f.bgr.shape for f in good],
-                          [float(f.bgr[::64, ::64].mean()) for f in good], opts.every, opts.frames)
-
-    cam_key = stage_key(frame_key, None if opts.spec is None else opts.spec.__dict__, opts.step_deg,
-                        str(opts.intrinsics) if opts.intrinsics else None)
-    seq, conics = _stage_cameras(frames, opts, progress, cam_key, out, cache)
+    unreadable = [f.name for f in frames if f.bgr is None]
+    if seq is None:
+        seq, conics = _stage_cameras(loaded, opts, progress, cam_key, out, cache)
+    else:
+        _check_known_cameras(seq, good, opts, out, ws)
     exif_focal = _exif_focal(good, seq, opts, progress)
     by_name = {fp.image: fp for fp in seq.frames}
     used: list[Frame] = []
@@ -364,13 +449,14 @@ def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, reco
         raise UserError(f"{opts.input}: only {len(used)} frame(s) could be calibrated; need at least 3 "
                         f"({'; '.join(f'{k}: {v}' for k, v in list(skipped.items())[:4])})")
     names = [f.name for f in used]
-    K = seq.intrinsics.K
+    K = ws.K(seq.intrinsics.K)  # the work images' camera (cameras.json keeps the photos')
     Ts = np.stack([by_name[n].T_cam_table for n in names])
-    images_rgb = [cv2.cvtColor(im, cv2.COLOR_BGR2RGB) for im in _undistort([f.bgr for f in used], seq)]
+    images_rgb = [cv2.cvtColor(im, cv2.COLOR_BGR2RGB) for im in _undistort([f.bgr for f in used], seq, ws)]
+    del frames, good, used, loaded  # the work BGR copies go; images_rgb holds the pixels from here on
 
-    sil_key = stage_key(cam_key, str(opts.masks_dir), Ts)
+    sil_key = stage_key(cam_key, str(opts.masks_dir), Ts, list(ws.work))
     sil, keep, rejected, conservative, hull, vol, vol_report = _silhouettes_and_hull(
-        images_rgb, names, K, Ts, opts, cache, sil_key, progress)
+        images_rgb, names, K, Ts, opts, cache, sil_key, progress, ws)
     for n, why in rejected.items():
         skipped[n] = f"silhouette rejected: {why}"
         progress.note(f"silhouettes: frame {n} rejected: {why}")
@@ -411,14 +497,31 @@ def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, reco
     summary["silhouettes"] = {"rejected": rejected, "conservative": conservative}
     summary["failed_checks"] = failed
     summary["exif_focal"] = exif_focal
+    summary["work_size"] = ws.report()
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1) + "\n")
     files["summary"] = out / "summary.json"
     if recorder is not None:
-        _record(recorder, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh, conics)
-    exit_code = EXIT_CHECK_FAILED if failed else EXIT_UNREADABLE if any(f.bgr is None for f in frames) else EXIT_OK
+        _record(recorder, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh, conics, ws)
+    exit_code = EXIT_CHECK_FAILED if failed else EXIT_UNREADABLE if unreadable else EXIT_OK
     return ReconstructResult(out=out, files=files, frames_used=names, frames_skipped=skipped,
                              summary=summary, exit_code=exit_code, failed_checks=failed,
-                             unreadable=[f.name for f in frames if f.bgr is None])
+                             unreadable=unreadable)
+
+
+def _check_known_cameras(seq: SequenceCalibration, good: list[Frame], opts: ReconstructOptions, out: Path,
+                         ws: WorkSize) -> None:
+    """``--cameras`` must be for photos of this size and name every readable frame; it is copied to OUT."""
+    if opts.cameras is None:
+        return
+    intr = seq.intrinsics
+    if (intr.width, intr.height) != tuple(ws.full):
+        raise UserError(f"--cameras {opts.cameras}: the cameras are for {intr.width}x{intr.height} images, "
+                        f"the frames are {ws.full[0]}x{ws.full[1]}")
+    names = {fp.image for fp in seq.frames}
+    missing = [f.name for f in good if f.name not in names]
+    if missing:
+        raise UserError(f"--cameras {opts.cameras}: no camera for frame(s) {', '.join(missing[:5])}")
+    write_cameras(out / "cameras.json", seq)
 
 
 def _exif_focal(frames: list[Frame], seq: SequenceCalibration, opts: ReconstructOptions,
@@ -508,14 +611,15 @@ def _summary(seq, names, skipped, mesh, progress, fusion_note, files) -> dict:
     }
 
 
-def _record(rec, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh, conics) -> None:
+def _record(rec, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh, conics, ws) -> None:
+    """The recording shows the work images with their camera ``K`` and the rings mapped onto them."""
     if opts.spec is not None:
         rec.log_target(opts.spec.r_outer_mm, opts.spec.r_inner_mm)
-    W, H = seq.intrinsics.width, seq.intrinsics.height
+    W, H = ws.work
     for i, n in enumerate(names):
         rec.log_camera(i, K, W, H, Ts[i], image_rgb=images_rgb[i])
         if n in conics:
-            rec.log_conics(i, conics[n])
+            rec.log_conics(i, {k: ws.conic(C) for k, C in conics[n].items()})
         rec.log_silhouette(i, masks[i])
     rec.log_mesh("hull", hull_mesh.vertices_table, hull_mesh.faces, hull_mesh.normals_table)
     if fused is not None and len(fused.pts_table):

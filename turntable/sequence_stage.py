@@ -8,7 +8,8 @@ Frames whose rings cannot be found are kept with their reason; the library
 from __future__ import annotations
 
 import logging
-from typing import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -16,10 +17,12 @@ from calib.target import TargetSpec
 from calib.types import CalibrationError, Intrinsics, SequenceCalibration, TargetObservation
 
 from .errors import UserError
+from .worksize import WorkSize
 
 log = logging.getLogger(__name__)
 
-__all__ = ["calibrate_frames", "detect_all"]
+__all__ = ["calibrate_frames", "calibrate_detected", "detect_all", "detect_and_reduce", "DetectedFrames",
+           "scaled_marks_reader"]
 
 
 def detect_all(frames: Sequence[tuple[str, np.ndarray | None, str]], spec: TargetSpec,
@@ -44,6 +47,61 @@ def detect_all(frames: Sequence[tuple[str, np.ndarray | None, str]], spec: Targe
         if progress is not None:
             progress(k + 1, len(frames))
     return obs, failures
+
+
+@dataclass
+class DetectedFrames:
+    """Frames read one by one: ring observations at full resolution, pixels kept at the work size only."""
+
+    names: list[str] = field(default_factory=list)
+    images: list = field(default_factory=list)  # (h, w, 3) uint8 at ``work.work``, or None (unreadable)
+    observations: list = field(default_factory=list)  # TargetObservation in full-image pixels, or None
+    failures: list[str] = field(default_factory=list)  # why a frame has no observation ("" where it has one)
+    work: WorkSize | None = None  # None until a readable frame was seen
+
+
+def detect_and_reduce(frames: Iterable[tuple[str, np.ndarray | None, str]], spec: TargetSpec | None,
+                      choose: Callable[[tuple[int, int], float | None, str], WorkSize], *,
+                      principal_point_px=None, expected_size: tuple[int, int] | None = None,
+                      progress: Callable[[int, int], None] | None = None, total: int = 0) -> DetectedFrames:
+    """Find the rings in each frame at full resolution (``spec`` None: don't) and keep it reduced.
+
+    ``frames`` may be a generator that decodes each image when it is reached:
+    no full-resolution frame is held past its own turn. ``choose(full_size,
+    ring_px, name)`` gives the work size on the first readable frame
+    (``ring_px``: long axis of its outer ring in pixels, None where not found).
+    ``expected_size`` (width, height): the size ``--intrinsics`` are for; another
+    is a ``UserError``.
+    """
+    from calib.conics import conic_to_ellipse
+    from calib.rings import detect_rings
+
+    out = DetectedFrames()
+    for name, img, error in frames:
+        obs, why = None, error or ""
+        if img is not None and not error:
+            h, w = img.shape[:2]
+            if expected_size is not None and (w, h) != tuple(expected_size):
+                raise UserError(f"--intrinsics are for {expected_size[0]}x{expected_size[1]} images, "
+                                f"the frames are {w}x{h}")
+            if spec is not None:
+                try:
+                    obs = detect_rings(img, spec, principal_point_px=principal_point_px)
+                except (CalibrationError, ValueError) as exc:  # one bad frame does not stop the sequence
+                    why = str(exc)
+            if out.work is None:
+                ring = 2.0 * conic_to_ellipse(obs.conics["outer"]).a if obs is not None else None
+                out.work = choose((w, h), ring, name)
+            img = out.work.reduce(img)
+        elif not why:
+            why = "image unreadable"
+        out.names.append(name)
+        out.images.append(img)
+        out.observations.append(obs)
+        out.failures.append("" if obs is not None else why)
+        if progress is not None:
+            progress(len(out.names), max(total, len(out.names)))
+    return out
 
 
 def calibrate_frames(frames: Sequence[tuple[str, np.ndarray | None, str]], spec: TargetSpec, *,
@@ -71,8 +129,6 @@ def calibrate_frames(frames: Sequence[tuple[str, np.ndarray | None, str]], spec:
         No frames, images of different sizes, intrinsics for another image size,
         or no frame could be calibrated (the message lists why).
     """
-    from calib.sequence import calibrate_sequence
-
     if not frames:
         raise UserError("no frames to calibrate")
     sizes = {img.shape[:2] for _, img, _ in frames if img is not None}
@@ -90,10 +146,53 @@ def calibrate_frames(frames: Sequence[tuple[str, np.ndarray | None, str]], spec:
     obs, failures = detect_all(frames, spec, principal_point_px=pp, progress=tick)
     if observations_out is not None:
         observations_out.extend(obs)
+    return calibrate_detected(obs, failures, [f[0] for f in frames], [img for _, img, _ in frames], spec,
+                              step_deg=step_deg, intrinsics=intrinsics, mode=mode,
+                              principal_point_px=principal_point_px, distortion=distortion, progress=tick2)
+
+
+def calibrate_detected(observations: Sequence[TargetObservation | None], failures: Sequence[str],
+                       names: Sequence[str], images: Sequence[np.ndarray | None], spec: TargetSpec, *,
+                       marks_map: np.ndarray | None = None, step_deg: float | None = None,
+                       intrinsics: Intrinsics | None = None, mode: str = "auto", principal_point_px=None,
+                       distortion: str = "auto", progress: Callable[[int, int], None] | None = None
+                       ) -> SequenceCalibration:
+    """The sequence calibration from ring observations already made (:func:`detect_all`).
+
+    ``images`` are what the angle marks are read from: the photos, or copies
+    reduced by ``marks_map`` (3, 3), the map of full-image pixel centres to
+    theirs (:func:`turntable.worksize.scale_matrix`); the marks are read there
+    with the camera matrix ``marks_map @ K``. The observations are always in
+    full-image pixels. Raises ``UserError`` when no frame can be calibrated.
+    """
+    from calib.sequence import calibrate_sequence
+
+    reader = None
+    if marks_map is not None:
+        reader = scaled_marks_reader(images, spec, marks_map, intrinsics.dist if intrinsics is not None else None)
     try:
-        return calibrate_sequence(obs, [img for _, img, _ in frames], spec, names=[f[0] for f in frames],
-                                  failures=failures, step_deg=step_deg, intrinsics=intrinsics, mode=mode,
-                                  principal_point_px=principal_point_px, distortion=distortion,
-                                  progress=tick2)
+        return calibrate_sequence(observations, None if reader is not None else list(images), spec,
+                                  names=list(names), failures=list(failures), step_deg=step_deg,
+                                  intrinsics=intrinsics, mode=mode, principal_point_px=principal_point_px,
+                                  distortion=distortion, angle_reader=reader, progress=progress)
     except CalibrationError as exc:
         raise UserError(str(exc)) from None
+
+
+def scaled_marks_reader(images: Sequence[np.ndarray | None], spec: TargetSpec, S: np.ndarray,
+                        dist: np.ndarray | None = None):
+    """An angle reader (:data:`calib.sequence.AngleReader`) on images reduced by ``S`` (full -> reduced pixels).
+
+    The marks are sampled in table millimetres (``calib.marks``), so reading
+    them on a reduced copy changes the camera matrix only: ``K' = S K``; the
+    distortion coefficients act on normalised coordinates and are unchanged.
+    """
+    from calib.sequence import marks_angle_reader
+
+    base = marks_angle_reader(images, spec, dist)
+    S = np.asarray(S, np.float64)
+
+    def read(k: int, K: np.ndarray, T: np.ndarray, dist_now: np.ndarray | None = None):
+        return base(k, S @ np.asarray(K, np.float64), T, dist_now)
+
+    return read
