@@ -1,7 +1,9 @@
 """``turntable pattern``: write the printable target (PDF, SVG or PNG) at true scale.
 
 The sheet carries the two rings, the angle marks (unless ``--no-marks``), the
-printed radii and stroke, a 50 mm scale bar and a "print at 100 %" note.
+printed radii and stroke, a 50 mm scale bar and a "print at 100 %" note, in
+black on white paper or, with ``--background COLOUR``, on a coloured ground
+(for white objects: README, "Scanning a white object").
 """
 
 from __future__ import annotations
@@ -28,10 +30,14 @@ def add_arguments(parser) -> None:
     parser.add_argument("--paper", default="a4", metavar="SIZE",
                         help="a4 (default), letter, a3, or WxH in millimetres (e.g. 300x300)")
     parser.add_argument("--dpi", type=float, default=300.0, help="PNG resolution (default 300)")
+    parser.add_argument("--background", default="white", metavar="COLOUR",
+                        help="ground colour of the printable area under the black ink: white (default), "
+                             "green (recommended for white objects), blue, grey, or #RRGGBB with a relative "
+                             "luminance of at least 0.35")
 
 
 def run(args) -> int:
-    from .pattern import paper_size_mm, write_pattern
+    from .pattern import paper_size_mm, parse_background, write_pattern
 
     out = Path(args.out)
     if out.suffix.lower() not in FORMATS:
@@ -42,12 +48,16 @@ def run(args) -> int:
         paper = paper_size_mm(args.paper)
     except ValueError as exc:
         raise UserError(f"{out}: {exc}") from None
+    try:
+        ground = parse_background(args.background)
+    except ValueError as exc:
+        raise UserError(f"{out}: --background {exc}") from None
     if not args.dpi > 0:
         raise UserError(f"{out}: --dpi must be positive, got {args.dpi:g}")
     if not out.parent.is_dir():
         raise UserError(f"{out}: folder {out.parent} does not exist")
     try:
-        write_pattern(out, spec, paper=paper, dpi=args.dpi)
+        write_pattern(out, spec, paper=paper, dpi=args.dpi, background=ground)
     except ValueError as exc:
         raise UserError(f"{out}: {exc}") from None
     except OSError as exc:

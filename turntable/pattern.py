@@ -16,6 +16,15 @@ drawings at true scale (SVG in mm units, PDF in points with a mm transform);
 PNG is a raster at ``dpi`` with its resolution stored in the file. Each sheet
 carries the radii and stroke as text, a 50 mm scale bar and a
 "print at 100 % / actual size" note.
+
+Ground colour (``background``): white paper by default; any other colour
+fills the whole printable area (the sheet less ``SHEET_MARGIN_MM`` on every
+side), under black rings, marks and text. A coloured ground lets the
+silhouettes tell a white object from the target (README, "Scanning a white
+object"). The ring and mark detectors work on grey levels, so a ground must
+stay light: its relative luminance (sRGB, ``Y = 0.2126 R + 0.7152 G + 0.0722 B``
+of the linearised channels) must be at least ``MIN_BACKGROUND_LUMINANCE``
+(see ``benchmarks/target_background.py`` for the measurement behind it).
 """
 
 from __future__ import annotations
@@ -29,7 +38,9 @@ import numpy as np
 
 from calib.target import TargetSpec, ink_at, mark_cells, turntable_angle
 
-__all__ = ["render_target_image", "write_pattern", "sheet_layout", "SheetLayout", "paper_size_mm", "PAPER_SIZES_MM", "SHEET_MARGIN_MM"]
+__all__ = ["render_target_image", "write_pattern", "sheet_layout", "SheetLayout", "paper_size_mm", "PAPER_SIZES_MM",
+           "SHEET_MARGIN_MM", "BACKGROUND_COLOURS", "MIN_BACKGROUND_LUMINANCE", "parse_background",
+           "relative_luminance"]
 
 #: Paper sizes (width, height) in mm, portrait.
 PAPER_SIZES_MM = {"a4": (210.0, 297.0), "letter": (215.9, 279.4), "a3": (297.0, 420.0)}
@@ -37,6 +48,46 @@ PAPER_SIZES_MM = {"a4": (210.0, 297.0), "letter": (215.9, 279.4), "a3": (297.0, 
 SHEET_MARGIN_MM = 5.0
 MM_PER_INCH = 25.4
 PT_PER_MM = 72.0 / MM_PER_INCH
+#: Named ground colours (sRGB). ``green`` is the one README recommends for white objects.
+BACKGROUND_COLOURS = {"white": (255, 255, 255), "green": (91, 200, 91), "blue": (110, 168, 255),
+                      "grey": (166, 166, 166)}
+#: Smallest relative luminance of a ground under black ink (measured: benchmarks/target_background.py).
+MIN_BACKGROUND_LUMINANCE = 0.35
+
+
+def relative_luminance(rgb) -> float:
+    """Relative luminance in [0, 1] of an sRGB colour given as three 0-255 values (WCAG / ITU-R BT.709)."""
+    c = np.asarray(rgb, dtype=np.float64) / 255.0
+    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    return float(lin @ [0.2126, 0.7152, 0.0722])
+
+
+def parse_background(text: str) -> tuple[int, int, int]:
+    """sRGB (R, G, B), 0-255, of a ground colour: a name of ``BACKGROUND_COLOURS`` or ``#RRGGBB``.
+
+    Raises
+    ------
+    ValueError
+        Not a colour, or too dark for the ring and mark detectors (relative
+        luminance below ``MIN_BACKGROUND_LUMINANCE``); the message says why.
+    """
+    key = str(text).strip().lower()
+    if key in BACKGROUND_COLOURS:
+        rgb = BACKGROUND_COLOURS[key]
+    elif len(key) == 7 and key[0] == "#" and all(ch in "0123456789abcdef" for ch in key[1:]):
+        rgb = tuple(int(key[i:i + 2], 16) for i in (1, 3, 5))
+    else:
+        raise ValueError(f"{text!r} is not a colour: use {', '.join(BACKGROUND_COLOURS)} or #RRGGBB (e.g. #5bc85b)")
+    y = relative_luminance(rgb)
+    if y < MIN_BACKGROUND_LUMINANCE:
+        raise ValueError(f"{text!r} is too dark (relative luminance {y:.2f}, at least {MIN_BACKGROUND_LUMINANCE:.2f} "
+                         "needed): black rings and marks must stand out from the ground; pick a lighter colour "
+                         f"(e.g. {', '.join(k for k in BACKGROUND_COLOURS if k != 'white')})")
+    return rgb
+
+
+def _hex(rgb) -> str:
+    return "#{:02x}{:02x}{:02x}".format(*rgb)
 
 
 def render_target_image(spec: TargetSpec, px_per_mm: float, size_mm: float | None = None,
@@ -200,7 +251,7 @@ def sheet_layout(spec: TargetSpec, paper) -> SheetLayout:
 
 # ----------------------------------------------------------------------------- writers
 
-def write_pattern(path, spec: TargetSpec, paper="a4", dpi: float = 300) -> str:
+def write_pattern(path, spec: TargetSpec, paper="a4", dpi: float = 300, background="white") -> str:
     """Write the printable target sheet to ``path`` (.pdf, .svg or .png), true scale.
 
     Parameters
@@ -212,6 +263,9 @@ def write_pattern(path, spec: TargetSpec, paper="a4", dpi: float = 300) -> str:
         ``"a4"``, ``"letter"``, ``"a3"``, ``"WxH"`` or ``(W, H)``, mm, portrait.
     dpi : float
         Resolution of a PNG (stored in its pHYs chunk); ignored for vector formats.
+    background : str or (int, int, int)
+        Ground colour of the printable area: a name of ``BACKGROUND_COLOURS``,
+        ``#RRGGBB`` or sRGB 0-255 values (checked by :func:`parse_background`).
 
     Returns
     -------
@@ -221,21 +275,23 @@ def write_pattern(path, spec: TargetSpec, paper="a4", dpi: float = 300) -> str:
     Raises
     ------
     ValueError
-        Unknown extension or paper, bad dpi, or a pattern that does not fit the paper.
+        Unknown extension or paper, bad dpi, a pattern that does not fit the
+        paper, or a ground colour that is not one or is too dark.
     """
     path = os.fspath(path)
+    ground = parse_background(background if isinstance(background, str) else _hex(background))
     ext = os.path.splitext(path)[1].lower()
     if ext not in (".pdf", ".svg", ".png"):
         raise ValueError(f"unsupported output format {ext or '(none)'!r}: use .pdf, .svg or .png")
     sheet = sheet_layout(spec, paper)
     if ext == ".svg":
-        data = _svg(spec, sheet).encode("utf-8")
+        data = _svg(spec, sheet, ground).encode("utf-8")
     elif ext == ".pdf":
-        data = _pdf(spec, sheet)
+        data = _pdf(spec, sheet, ground)
     else:
         if not (dpi > 0 and math.isfinite(dpi)):
             raise ValueError(f"dpi must be positive, got {dpi}")
-        data = _png(spec, sheet, float(dpi))
+        data = _png(spec, sheet, float(dpi), ground)
     with open(path, "wb") as f:
         f.write(data)
     return path
@@ -248,7 +304,13 @@ def _sector_points(cx, cy, t0, t1, r0, r1):
             (cx + r0 * c1, cy + r0 * s1), (cx + r0 * c0, cy + r0 * s0))
 
 
-def _svg(spec: TargetSpec, sheet: SheetLayout) -> str:
+def _printable_mm(sheet: SheetLayout) -> tuple[float, float, float, float]:
+    """The printable area (x, y, w, h), mm: the sheet less ``SHEET_MARGIN_MM`` on every side."""
+    m = SHEET_MARGIN_MM
+    return m, m, sheet.width_mm - 2 * m, sheet.height_mm - 2 * m
+
+
+def _svg(spec: TargetSpec, sheet: SheetLayout, ground=(255, 255, 255)) -> str:
     from xml.sax.saxutils import escape
 
     W, H = sheet.width_mm, sheet.height_mm
@@ -260,6 +322,10 @@ def _svg(spec: TargetSpec, sheet: SheetLayout) -> str:
            f'<title>turntable target r_outer={_fmt(spec.r_outer_mm)} r_inner={_fmt(spec.r_inner_mm)} '
            f'stroke={_fmt(spec.stroke_mm)} mm</title>',
            f'<rect x="0" y="0" width="{_fmt(W)}" height="{_fmt(H)}" fill="#ffffff"/>']
+    if tuple(ground) != (255, 255, 255):
+        gx, gy, gw, gh = _printable_mm(sheet)
+        out.append(f'<rect id="ground" x="{_fmt(gx)}" y="{_fmt(gy)}" width="{_fmt(gw)}" height="{_fmt(gh)}" '
+                   f'fill="{_hex(ground)}"/>')
     for R in (spec.r_outer_mm, spec.r_inner_mm):
         out.append(f'<circle cx="{f(cx)}" cy="{f(cy)}" r="{f(R)}" fill="none" stroke="#000000" '
                    f'stroke-width="{f(spec.stroke_mm)}"/>')
@@ -298,11 +364,14 @@ def _pdf_text(s: str) -> str:
     return "".join(f"\\{chr(b)}" if b in b"()\\" else (chr(b) if 32 <= b < 127 else f"\\{b:03o}") for b in raw)
 
 
-def _pdf(spec: TargetSpec, sheet: SheetLayout) -> bytes:
+def _pdf(spec: TargetSpec, sheet: SheetLayout, ground=(255, 255, 255)) -> bytes:
     W, H = sheet.width_mm, sheet.height_mm
     cx, cy = sheet.centre_mm
     f = "{:.4f}".format
     ops = [f"{PT_PER_MM:.9f} 0 0 {-PT_PER_MM:.9f} 0 {H * PT_PER_MM:.4f} cm"]  # mm, y down
+    if tuple(ground) != (255, 255, 255):  # the ground first, the ink over it
+        r, g, b = (v / 255.0 for v in ground)
+        ops.append(f"{r:.4f} {g:.4f} {b:.4f} rg " + " ".join(f(v) for v in _printable_mm(sheet)) + " re f")
     ops.append(f"0 g 0 G {f(spec.stroke_mm)} w")
     for R in (spec.r_outer_mm, spec.r_inner_mm):
         ops.append(f"{f(cx + R)} {f(cy)} m")
@@ -341,7 +410,7 @@ def _pdf(spec: TargetSpec, sheet: SheetLayout) -> bytes:
     return bytes(out)
 
 
-def _png(spec: TargetSpec, sheet: SheetLayout, dpi: float) -> bytes:
+def _png(spec: TargetSpec, sheet: SheetLayout, dpi: float, ground=(255, 255, 255)) -> bytes:
     import io
 
     from PIL import Image, ImageDraw, ImageFont
@@ -369,6 +438,14 @@ def _png(spec: TargetSpec, sheet: SheetLayout, dpi: float) -> bytes:
         except TypeError:  # Pillow < 10.1: fixed bitmap font
             font = ImageFont.load_default()
         draw.text((x / mm_per_px, y / mm_per_px), text, fill=0, font=font, anchor="ls")
+    if tuple(ground) != (255, 255, 255):  # ink over the ground: the grey sheet's paper fraction times the ground
+        gx, gy, gw, gh = _printable_mm(sheet)
+        rgb = np.full((h_px, w_px, 3), 255.0, np.float32)
+        rows = slice(int(round(gy / mm_per_px)), int(round((gy + gh) / mm_per_px)))
+        cols = slice(int(round(gx / mm_per_px)), int(round((gx + gw) / mm_per_px)))
+        rgb[rows, cols] = np.asarray(ground, np.float32)
+        paper = np.asarray(pil, dtype=np.float32) / 255.0
+        pil = Image.fromarray(np.round(paper[..., None] * rgb).astype(np.uint8), mode="RGB")
     buf = io.BytesIO()
     pil.save(buf, format="PNG", dpi=(dpi, dpi))
     return buf.getvalue()
