@@ -71,6 +71,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--albedo", type=_albedo, default=None, metavar="R,G,B",
                    help="colour the object uniformly with this sRGB albedo in [0, 1] ('white' = 0.85,0.84,0.82) "
                         "instead of the procedural texture")
+    p.add_argument("--target-background", default="white", metavar="COLOUR",
+                   help="ground colour of the printed target, as `turntable pattern --background` prints it: "
+                        "white (default), green, blue, grey or #RRGGBB")
     p.add_argument("--supersample", type=int, default=3, help="rays per pixel per axis at edges (default 3)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty OUT")
@@ -90,7 +93,7 @@ def options_from_args(args: argparse.Namespace):
             backdrop=args.backdrop, handheld=args.handheld, k1=args.k1, k2=args.k2,
             principal_point=None if args.principal_point is None else tuple(args.principal_point),
             r_outer=args.r_outer, r_inner=args.r_inner, stroke=args.stroke, seed=args.seed,
-            supersample=args.supersample, albedo=args.albedo)
+            supersample=args.supersample, albedo=args.albedo, target_background=args.target_background)
     except ValueError as exc:
         raise UserError(str(exc)) from None
 

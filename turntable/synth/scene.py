@@ -171,8 +171,12 @@ def _paper_radius_mm(spec: TargetSpec) -> float:
 
 
 def _disc_top_texture(spec: TargetSpec, px_per_mm: float, paper_r: float, disc_r: float,
-                      rng: np.random.Generator) -> np.ndarray:
-    """Linear albedo raster of the disc top: paper target on a slightly grainy disc."""
+                      rng: np.random.Generator, ground_rgb=(255, 255, 255)) -> np.ndarray:
+    """Linear albedo raster of the disc top: paper target on a slightly grainy disc.
+
+    ``ground_rgb`` (sRGB 0-255) is the printed ground under the ink: it filters
+    the slightly warm paper (white: the bare paper); the ink stays black.
+    """
     try:
         target = render_target_image(spec, px_per_mm, supersample=2)
     except TypeError:  # a signature without supersample
@@ -193,7 +197,8 @@ def _disc_top_texture(spec: TargetSpec, px_per_mm: float, paper_r: float, disc_r
     paper = np.full((size, size), 255.0, np.float32)
     paper[m:m + n, m:m + n] = target
     fibre = 1.0 + 0.006 * _blur_noise(rng, (size, size), 0.5 * px_per_mm)
-    paper_rgb = (paper * fibre / 255.0 * 0.92)[..., None] * np.array([1.0, 0.99, 0.96], np.float32)
+    ground = np.array([1.0, 0.99, 0.96], np.float32) * (np.asarray(ground_rgb, np.float32) / 255.0)
+    paper_rgb = (paper * fibre / 255.0 * 0.92)[..., None] * ground
     alpha = np.clip((paper_r - r) * px_per_mm + 0.5, 0.0, 1.0)[..., None]
     return _srgb_to_linear(alpha * paper_rgb + (1.0 - alpha) * img)
 
@@ -211,7 +216,7 @@ def _floor_texture(rng: np.random.Generator, half_mm: float, px_per_mm: float) -
 def build_scene(mesh: trimesh.Trimesh, spec: TargetSpec, backdrop: str = "dark", *,
                 rng: np.random.Generator, target_px_per_mm: float = 6.0,
                 backdrop_distance_mm: float | None = None, room_radius_mm: float = _ROOM_RADIUS_MM,
-                light_dir_world=(-0.45, 1.0, 0.55)) -> SynthScene:
+                light_dir_world=(-0.45, 1.0, 0.55), target_background=(255, 255, 255)) -> SynthScene:
     """Assemble the turntable and room ray-casting scenes around ``mesh``.
 
     Parameters
@@ -239,12 +244,15 @@ def build_scene(mesh: trimesh.Trimesh, spec: TargetSpec, backdrop: str = "dark",
         Radius of the round wall; every camera must stand inside it.
     light_dir_world : (3,) array_like
         Direction towards the light, world frame (normalised here).
+    target_background : (3,) int
+        sRGB 0-255 ground colour printed under the target's ink (``turntable
+        pattern --background``); white: plain paper.
     """
     if backdrop not in BACKDROPS:
         raise ValueError(f"unknown backdrop {backdrop!r}; choose one of {', '.join(BACKDROPS)}")
     paper_r = _paper_radius_mm(spec)
     disc_r = max(spec.r_outer_mm + 40.0, paper_r + 12.0)
-    disc_top = _disc_top_texture(spec, target_px_per_mm, paper_r, disc_r, rng)
+    disc_top = _disc_top_texture(spec, target_px_per_mm, paper_r, disc_r, rng, target_background)
 
     tt = o3d.t.geometry.RaycastingScene()
     V = np.asarray(mesh.vertices, np.float32)

@@ -50,6 +50,7 @@ from calib.camera import invert_T, look_at, make_T
 from calib.target import TargetSpec
 from calib.types import FramePose, Intrinsics, SequenceCalibration
 from turntable.cameras_io import write_cameras
+from turntable.pattern import parse_background
 
 from .objects import OBJECT_NAMES, load_object, make_object, with_uniform_albedo
 from .render import render_view
@@ -99,6 +100,7 @@ class SynthOptions:
     seed: int = 0
     supersample: int = 3
     albedo: tuple[float, float, float] | None = None  # one sRGB colour in [0, 1] instead of the texture
+    target_background: str = "white"  # ground of the printed target: a name or #RRGGBB (turntable.pattern)
 
     def __post_init__(self) -> None:
         checks = [
@@ -120,6 +122,10 @@ class SynthOptions:
         for ok, msg in checks:
             if not ok:
                 raise ValueError(msg)
+        try:
+            parse_background(self.target_background)
+        except ValueError as exc:
+            raise ValueError(f"--target-background {exc}") from None
         spec = self.target_spec()  # raises ValueError for radii that do not fit
         if self.distance_mm <= spec.r_outer_mm + 60.0:
             raise ValueError(f"--distance-mm {self.distance_mm} is too close: the camera must be farther "
@@ -261,7 +267,8 @@ def make_sequence(out_dir: str | os.PathLike, options: SynthOptions, overwrite: 
     room_mm = max(700.0, 1.3 * far + 100.0)
     light = _light_direction(np.random.default_rng(seeds[4]))
     scene = build_scene(mesh, spec, options.backdrop, rng=np.random.default_rng(seeds[1]), target_px_per_mm=ppm,
-                        backdrop_distance_mm=backdrop_mm, room_radius_mm=room_mm, light_dir_world=light)
+                        backdrop_distance_mm=backdrop_mm, room_radius_mm=room_mm, light_dir_world=light,
+                        target_background=parse_background(options.target_background))
     noise_rngs = [np.random.default_rng(s) for s in seeds[3].spawn(options.frames)]
     ext = "png" if options.jpeg == 0 else "jpg"
 
@@ -302,6 +309,7 @@ def make_sequence(out_dir: str | os.PathLike, options: SynthOptions, overwrite: 
         scene_info = {
             "options": asdict(options),
             "angles_deg": [float(a) for a in angles],
+            "target_background_rgb": list(parse_background(options.target_background)),
             "paper_radius_mm": scene.paper_radius_mm,
             "disc_radius_mm": scene.disc_radius_mm,
             "disc_thickness_mm": _DISC_THICKNESS_MM,
