@@ -124,6 +124,30 @@ def _judge(labels, n, hull, hull_vf, fused_vf, depths, masks, K, Ts, min_confide
     return e_h, e_f, cnt, n_through
 
 
+def _blend_kept(h: np.ndarray, F: np.ndarray, labels: np.ndarray, keep: np.ndarray, voxel_mm: float,
+                region_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """The fused grid ``F`` in the kept regions, the hull's ``h`` elsewhere, and the kept voxels.
+
+    Voxels the fusion changed belong to the region they touch (a voxel's
+    dilation). Between a kept region and a rejected one of the same carved
+    piece the two surfaces differ, and a hard switch leaves a step wall along
+    the prism's side (box-shaped seams on the model): there the switch is a
+    ramp, half way at the border and over about a third of a region each
+    side. Away from rejected regions (a cavity's walls) the kept surface stays
+    as fused, and away from kept ones the hull stays; ``F <= h``, so the blend
+    never leaves the hull.
+    """
+    kept_vox = ndimage.maximum_filter(np.where(keep[labels], labels, 0), size=3) > 0
+    rejected_vox = (ndimage.maximum_filter(np.where(keep[labels], 0, labels), size=3) > 0) & ~kept_vox
+    sigma = max(1.0, region_mm / 6.0 / voxel_mm)
+    s_k = ndimage.gaussian_filter(kept_vox.astype(np.float32), sigma)
+    s_r = ndimage.gaussian_filter(rejected_vox.astype(np.float32), sigma)
+    w = kept_vox.astype(np.float32)
+    ramp = (kept_vox | rejected_vox) & (s_k > 1e-3) & (s_r > 1e-3)
+    w[ramp] = s_k[ramp] / (s_k[ramp] + s_r[ramp])
+    return (w * F + (1.0 - w) * h).astype(np.float32), kept_vox
+
+
 def choose_regions(hull: VoxelHull, values: np.ndarray, depths: Sequence[DepthMap], K: np.ndarray,
                    T_cam_table: Sequence[np.ndarray] | np.ndarray, masks: Sequence[np.ndarray] | None = None, *,
                    region_mm: float = 15.0,
@@ -186,9 +210,7 @@ def choose_regions(hull: VoxelHull, values: np.ndarray, depths: Sequence[DepthMa
     keep = judged & (e_f < margin * e_h) & (n_through <= max_through * np.maximum(cnt, 1.0))
     keep[0] = False
     size = np.bincount(labels.ravel(), minlength=n + 1) * vox3
-    # voxels the fusion changed belong to the region they touch; all others return to the hull
-    kept_vox = ndimage.maximum_filter(np.where(keep[labels], labels, 0), size=3) > 0
-    out = np.where(kept_vox, F, h).astype(np.float32)
+    out, kept_vox = _blend_kept(h, F, labels, keep, float(hull.voxel_mm), region_mm)
     if smooth_vox > 0 and kept_vox.any():
         # stereo noise: smooth the kept surface (the field clipped to a band, so deep values
         # do not bleed through thin walls), never above the hull

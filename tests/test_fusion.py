@@ -265,3 +265,36 @@ def test_supported_field_fills_enclosed_voids_and_drops_cut_off_pieces():
     with pytest.raises(ValueError):
         supported_field(h, F[:-1])
 
+
+
+def test_kept_and_rejected_regions_meet_in_a_ramp_not_a_step():
+    """A slab whose top stereo lowered by 6 mm: where a kept region meets a rejected one the
+    surface ramps from the fused height to the hull's (a hard switch left a 6 mm wall: box-shaped
+    seams on real models); far from the border each side is exactly its own surface, and a kept
+    region's border with space nobody carved (a cavity's wall) is left as fused."""
+    from recon.regions import _blend_kept
+
+    vox = 1.0
+    y = np.arange(60) * vox
+    h = np.broadcast_to((40.0 - y)[None, :, None], (90, 60, 30)).astype(np.float32).copy()  # top at Y = 40
+    F = np.minimum(h, (34.0 - y)[None, :, None]).astype(np.float32)  # fused top at Y = 34
+    labels = np.zeros(h.shape, np.int32)
+    carved = (h > 0) & (F <= 0)
+    labels[:45][carved[:45]] = 1  # x < 45: a region the held-out views confirm
+    labels[45:][carved[45:]] = 2  # x >= 45: one they reject
+    keep = np.array([False, True, False])
+    out, _ = _blend_kept(h, F, labels, keep, vox, region_mm=15.0)
+
+    def top(col):  # the surface's height (zero crossing of the field) in column x = col
+        f = out[col, :, 15]
+        k = int(np.flatnonzero(f > 0).max())
+        return y[k] + f[k] / (f[k] - f[k + 1]) * vox
+
+    tops = np.array([top(x) for x in range(90)])
+    assert tops[:25] == pytest.approx(34.0, abs=1e-4) and tops[-25:] == pytest.approx(40.0, abs=1e-4)
+    assert np.abs(np.diff(tops)).max() < 1.5, np.round(tops, 2)  # a ramp (a step: 6 mm at once)
+    assert 35.0 < tops[44] < 39.0 and np.all(np.diff(tops) >= -1e-4)  # monotonic, half way near the border
+    # a kept region next to uncarved hull (no rejected region near): exactly the fused grid
+    out, kept = _blend_kept(h, F, np.where(labels == 1, 1, 0).astype(np.int32), keep, vox, region_mm=15.0)
+    np.testing.assert_array_equal(out[kept], F[kept])
+    assert np.array([top(x) for x in range(45)]) == pytest.approx(34.0, abs=1e-4)
