@@ -21,7 +21,7 @@ from calib.types import SequenceCalibration
 from .cameras_io import write_cameras
 from .cmd_calibrate import add_target_arguments, target_from_args
 from .errors import UserError
-from .frames import load_frames, select_indices
+from .frames import VIDEO_SUFFIXES, iter_frames, select_indices
 from .images import exif_focal_report, focal_warning, list_images, read_image
 
 __all__ = ["add_arguments", "run", "calibrate_folder", "summary_table"]
@@ -82,9 +82,6 @@ def calibrate_folder(paths, spec: TargetSpec, *, step_deg=None, intrinsics=None,
     ``UserError`` when nothing can be calibrated or the photos differ in size;
     see :func:`turntable.sequence_stage.calibrate_frames` for the rest.
     """
-    from .sequence_stage import calibrate_detected, detect_and_reduce
-    from .worksize import choose_work_size
-
     def frames():
         size = None
         for p in map(Path, paths):
@@ -101,13 +98,30 @@ def calibrate_folder(paths, spec: TargetSpec, *, step_deg=None, intrinsics=None,
 
     if not paths:
         raise UserError("no frames to calibrate")
-    n = len(paths)
-    tick = (lambda done, total: progress(done, 2 * n)) if progress is not None else None
-    tick2 = (lambda done, total: progress(n + done, 2 * n)) if progress is not None else None
+    return calibrate_stream(frames(), len(paths), spec, step_deg=step_deg, intrinsics=intrinsics, mode=mode,
+                            principal_point_px=principal_point_px, distortion=distortion, progress=progress)
+
+
+def calibrate_stream(frames, n: int, spec: TargetSpec, *, step_deg=None, intrinsics=None, mode="auto",
+                     principal_point_px=None, distortion="auto", progress=None) -> SequenceCalibration:
+    """Calibrate frames ``(name, BGR image or None, error)`` given one at a time (a generator that decodes
+    each when it is reached: a folder's photos, a video's frames), ``n`` of them (0: not known ahead).
+
+    Each frame's rings are found at full resolution and only a copy at the
+    default work size is kept, for the angle marks.
+    """
+    from .sequence_stage import calibrate_detected, detect_and_reduce
+    from .worksize import choose_work_size
+
+    tick = (lambda done, total: progress(done, 2 * max(n, total))) if progress is not None else None
     pp = intrinsics.principal_point_px if intrinsics is not None else principal_point_px
-    det = detect_and_reduce(frames(), spec, lambda size, ring, name: choose_work_size(size, ring),
+    det = detect_and_reduce(frames, spec, lambda size, ring, name: choose_work_size(size, ring),
                             principal_point_px=pp, progress=tick, total=n,
                             expected_size=None if intrinsics is None else (intrinsics.width, intrinsics.height))
+    if not det.names:
+        raise UserError("no frames to calibrate")
+    m = len(det.names)
+    tick2 = (lambda done, total: progress(m + done, 2 * m)) if progress is not None else None
     return calibrate_detected(det.observations, det.failures, det.names, det.images, spec,
                               marks_map=None if det.work is None else det.work.S, step_deg=step_deg,
                               intrinsics=intrinsics, mode=mode, principal_point_px=principal_point_px,
@@ -179,9 +193,10 @@ def run(args) -> int:
     if src.is_dir():
         files = list_images(src)
         paths = [files[i] for i in select_indices(len(files), args.every, args.frames)]
-    else:  # a video (load_frames names what else it is: missing, a single image, unknown)
+    else:  # a video (iter_frames names what else it is: missing, a single image, unknown)
         paths = None
-        frames = load_frames(src, args.every, args.frames)
+        if not src.exists() or src.suffix.lower() not in VIDEO_SUFFIXES:
+            next(iter_frames(src, args.every, args.frames))  # raises UserError saying what it is
     intr = None
     if args.intrinsics:
         from .intrinsics_io import read_opencv_intrinsics
@@ -198,10 +213,9 @@ def run(args) -> int:
         exif = exif_focal_report(paths, seq.intrinsics.width, seq.intrinsics.height, seq.intrinsics.focal_px)
         if exif is not None:
             seq = dataclasses.replace(seq, meta={**seq.meta, "exif_focal": exif})
-    else:
-        from .sequence_stage import calibrate_frames
-
-        seq = calibrate_frames([(f.name, f.bgr, f.error) for f in frames], spec, **kw)
+    else:  # the video's frames decoded one at a time, never all held at full resolution
+        seq = calibrate_stream(((f.name, f.bgr, f.error) for f in iter_frames(src, args.every, args.frames)), 0,
+                               spec, **kw)
     for f in seq.frames:
         if not f.ok:
             where = src / f.image if paths is not None else f"{src} (frame {f.image})"

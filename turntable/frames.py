@@ -58,42 +58,40 @@ def _count_video_frames(path: Path) -> int:
     return n
 
 
-def _read_video(path: Path, n: int, every: int, count: int | None) -> tuple[list[Frame], int]:
-    """The selected frames (rotation metadata applied) and how many frames the video really has."""
+def _read_video(path: Path, n: int, every: int, count: int | None) -> Iterator[Frame]:
+    """The selected frames (rotation metadata applied), decoded one at a time as they are reached."""
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
         raise UserError(f"{path}: cannot open video (unsupported format or corrupt)")
     cap.set(cv2.CAP_PROP_ORIENTATION_AUTO, 1)  # phones film portrait as landscape + a rotation: show it upright
     wanted = set(select_indices(n, every, count)) if count is not None else None
-    frames, i = [], 0
+    i = 0
     try:
         while cap.grab():  # grab every frame (cheap), convert only those used
             if (i in wanted) if wanted is not None else (i % every == 0):
                 ok, img = cap.retrieve()
                 if ok and img is not None:
-                    frames.append(Frame(name=f"{path.stem}_{i:05d}.png", bgr=img))
+                    yield Frame(name=f"{path.stem}_{i:05d}.png", bgr=img)
             i += 1
     finally:
         cap.release()
-    return frames, i
 
 
-def _video_frames(path: Path, every: int, count: int | None = None) -> list[Frame]:
-    """Frames of a video, upright: every ``every``-th, or ``count`` evenly spread (see :func:`select_indices`)."""
+def _video_frames(path: Path, every: int, count: int | None = None) -> Iterator[Frame]:
+    """Frames of a video, upright, one at a time: every ``every``-th, or ``count`` evenly spread (see
+    :func:`select_indices`). Never more than one decoded frame is held here (a phone's 4K video of a
+    turn has hundreds). For ``count``, the frames are counted by reading first: containers' frame
+    counts can be wrong."""
     select_indices(1, every, count)  # argument errors before any decoding
-    n = 0
-    if count is not None:
-        probe = cv2.VideoCapture(str(path))
-        n = int(probe.get(cv2.CAP_PROP_FRAME_COUNT)) if probe.isOpened() else 0
-        probe.release()
-        if n <= 0:  # no (or no usable) frame count in the container: count by reading
-            n = _count_video_frames(path)
-    frames, n_read = _read_video(path, n, every, count)
-    if count is not None and n_read != n and n_read > 0:  # the container's count was wrong: spread again
-        frames, n_read = _read_video(path, n_read, every, count)
-    if not frames:
+    n = _count_video_frames(path) if count is not None else 0
+    if count is not None and n == 0:
         raise UserError(f"{path}: no frame could be decoded from the video")
-    return frames
+    got = 0
+    for f in _read_video(path, n, every, count):
+        got += 1
+        yield f
+    if not got:
+        raise UserError(f"{path}: no frame could be decoded from the video")
 
 
 def iter_frames(input_path: str | Path, every: int = 1, count: int | None = None) -> Iterator[Frame]:
@@ -102,8 +100,7 @@ def iter_frames(input_path: str | Path, every: int = 1, count: int | None = None
     Same frames, order, names and errors as :func:`load_frames` (which see),
     but at most one photo of a folder is held at a time: callers that keep a
     reduced copy (``reconstruct``) never hold every frame at full resolution.
-    Video frames are decoded together (as :func:`load_frames` does) and handed
-    out one by one. Frames of different sizes raise ``UserError`` when the
+    Video frames too are decoded one at a time. Frames of different sizes raise ``UserError`` when the
     first odd one is reached; no readable frame at all raises it at the end.
     """
     p = Path(input_path)
@@ -112,7 +109,7 @@ def iter_frames(input_path: str | Path, every: int = 1, count: int | None = None
         raise UserError(f"{p}: not found")
     if p.is_file():
         if p.suffix.lower() in VIDEO_SUFFIXES:
-            source: Iterator[Frame] = iter(_video_frames(p, every, count))
+            source: Iterator[Frame] = _video_frames(p, every, count)
         elif p.suffix.lower() in IMAGE_SUFFIXES:
             raise UserError(f"{p}: INPUT must be a folder of images or a video, not a single image")
         else:
