@@ -56,3 +56,31 @@ def test_bad_files_name_the_file_and_reason(tmp_path, content, reason):
 def test_missing_file(tmp_path):
     with pytest.raises(UserError, match="not found"):
         read_cameras(tmp_path / "nope.json")
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda d: d["frames"][1]["T_cam_table"][0].__setitem__(3, float("nan")), r"frame 1 \(frame_001.jpg\).*non-finite"),
+    (lambda d: d["frames"][0].__setitem__("T_cam_table", np.eye(4).tolist()), r"frame 0 \(frame_000.jpg\).*in front"),
+    (lambda d: d["frames"][2]["T_cam_table"][0].__setitem__(0, 2.0), r"frame 2 .*not a rotation"),
+    (lambda d: d["frames"][2]["T_cam_table"][3].__setitem__(2, 1.0), r"frame 2 .*last row"),
+    (lambda d: d["intrinsics"]["K"][0].__setitem__(0, -1500.0), r"focal lengths must be positive.*fx = -1500"),
+    (lambda d: d["intrinsics"]["K"][1].__setitem__(1, float("nan")), r"finite 3x3"),
+    (lambda d: d["intrinsics"]["K"][2].__setitem__(0, 0.5), r"last row must be \[0, 0, 1\]"),
+    (lambda d: d["intrinsics"].__setitem__("width", 0), r"width and height must be positive"),
+    (lambda d: d["intrinsics"]["dist"].__setitem__(0, float("inf")), r"dist must be finite"),
+])
+def test_implausible_cameras_are_refused_naming_file_and_frame(tmp_path, edit, match):
+    p = tmp_path / "cameras.json"
+    write_cameras(p, _seq())
+    d = json.loads(p.read_text())
+    edit(d)
+    p.write_text(json.dumps(d))  # Python writes NaN / Infinity literals, as a hand-edited file might have
+    with pytest.raises(UserError, match=match) as e:
+        read_cameras(p)
+    assert str(p) in str(e.value)
+
+
+def test_a_failed_frame_keeps_its_placeholder_pose(tmp_path):
+    p = tmp_path / "cameras.json"
+    write_cameras(p, _seq())  # frame 3 failed: identity pose, status says why
+    assert read_cameras(p).frames[3].status == "inner ring not found"

@@ -86,8 +86,50 @@ def cameras_from_dict(d: dict, source: str = "cameras.json") -> SequenceCalibrat
         raise
     except (KeyError, TypeError, ValueError) as exc:
         raise UserError(f"{source}: not a valid cameras.json ({type(exc).__name__}: {exc})") from None
+    _check_sense(intr, frames, source)
     meta = {k: v for k, v in d.items() if k not in _RESERVED}
     return SequenceCalibration(intrinsics=intr, frames=tuple(frames), mode=str(d.get("mode", "turntable")), meta=meta)
+
+
+def _check_sense(intr: Intrinsics, frames: list[FramePose], source: str) -> None:
+    """``UserError`` naming the file, the frame and the reason for cameras no real camera can have.
+
+    A camera matrix with non-finite entries, a focal length that is not
+    positive, a last row other than (0, 0, 1), or a non-positive image size;
+    non-finite distortion; and, for each frame whose status is "ok" (a failed
+    frame keeps a placeholder pose), a non-finite pose, a rotation that is not
+    one (orthonormal, determinant +1, to 1e-3), a last row other than
+    (0, 0, 0, 1), or a table origin that is not in front of the camera (the
+    camera must look at the table: an identity pose puts it at the origin).
+    """
+    K = intr.K
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+        raise UserError(f"{source}: intrinsics K must be a finite 3x3 matrix, got {K.tolist()}")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise UserError(f"{source}: intrinsics K: the focal lengths must be positive, got fx = {K[0, 0]:g}, "
+                        f"fy = {K[1, 1]:g}")
+    if not np.allclose(K[2], [0.0, 0.0, 1.0], atol=1e-9):
+        raise UserError(f"{source}: intrinsics K: the last row must be [0, 0, 1], got {K[2].tolist()}")
+    if intr.width <= 0 or intr.height <= 0:
+        raise UserError(f"{source}: intrinsics: width and height must be positive, got {intr.width} x {intr.height}")
+    if not np.all(np.isfinite(intr.dist)):
+        raise UserError(f"{source}: intrinsics dist must be finite, got {intr.dist.tolist()}")
+    for k, f in enumerate(frames):
+        if not f.ok:
+            continue
+        T = f.T_cam_table
+        where = f"{source}: frame {k} ({f.image})"
+        if not np.all(np.isfinite(T)):
+            raise UserError(f"{where}: T_cam_table has a non-finite entry (NaN or inf)")
+        R = T[:3, :3]
+        if not (np.allclose(R.T @ R, np.eye(3), atol=1e-3) and abs(np.linalg.det(R) - 1.0) < 1e-3):
+            raise UserError(f"{where}: T_cam_table's upper-left 3x3 is not a rotation (orthonormal, determinant +1)")
+        if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+            raise UserError(f"{where}: T_cam_table's last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+        if not T[2, 3] > 0:
+            raise UserError(f"{where}: the table's origin is not in front of the camera (its depth is "
+                            f"{T[2, 3]:g} mm): T_cam_table must map table points (mm) into the camera frame "
+                            f"(OpenCV: z forward), p_cam = T_cam_table @ p_table")
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
