@@ -99,6 +99,7 @@ def _read_masks(masks_dir: Path, names: list[str], ws: WorkSize) -> np.ndarray:
     then > 0.5) as it is read.
     """
     from .images import IMAGE_SUFFIXES, read_image
+    from .mask_checks import check_masks
 
     if not masks_dir.is_dir():
         raise UserError(f"--masks {masks_dir}: not a folder")
@@ -114,6 +115,7 @@ def _read_masks(masks_dir: Path, names: list[str], ws: WorkSize) -> np.ndarray:
             raise UserError(f"{p}: mask is {m.shape[1]}x{m.shape[0]}, frame {n} is {W}x{H}")
         obj = np.where(m.max(axis=2) > 127, np.uint8(255), np.uint8(0))
         out[i] = ws.reduce(obj) > 127
+    check_masks(out, names, masks_dir)  # inverted, all-white, mostly empty: refused before any work
     return out
 
 
