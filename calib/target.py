@@ -95,8 +95,8 @@ class TargetSpec:
     mark_code: str = DEFAULT_MARK_CODE
 
     def __post_init__(self) -> None:
-        if not (self.r_outer_mm > 0 and self.r_inner_mm > 0):
-            raise ValueError(f"ring radii must be positive, got {self.r_outer_mm}, {self.r_inner_mm}")
+        if not (0 < self.r_outer_mm < np.inf and 0 < self.r_inner_mm < np.inf):
+            raise ValueError(f"ring radii must be positive finite numbers, got {self.r_outer_mm}, {self.r_inner_mm}")
         if self.r_inner_mm >= self.r_outer_mm:
             raise ValueError(f"--r-inner ({self.r_inner_mm}) must be smaller than --r-outer ({self.r_outer_mm})")
         if not (0 <= self.stroke_mm < 0.5 * (self.r_outer_mm - self.r_inner_mm)):

@@ -41,6 +41,12 @@ def add_target_arguments(parser, required: bool = True, optional_note: str = "")
 
 
 def target_from_args(args) -> TargetSpec:
+    for flag, value in (("--r-outer", args.r_outer), ("--r-inner", args.r_inner), ("--stroke", args.stroke)):
+        if not (value is not None and math.isfinite(value) and value > 0):
+            raise UserError(f"{flag} must be a positive number of millimetres, got {value}")
+    pp = getattr(args, "principal_point", None)
+    if pp is not None and not all(math.isfinite(v) for v in pp):
+        raise UserError(f"--principal-point must be two finite pixel coordinates, got {pp[0]} {pp[1]}")
     try:
         return TargetSpec(r_outer_mm=args.r_outer, r_inner_mm=args.r_inner, stroke_mm=args.stroke)
     except ValueError as exc:

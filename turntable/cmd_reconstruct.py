@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import os
 import sys
 import time
@@ -55,6 +57,8 @@ def options_from_args(args) -> ReconstructOptions:
         raise UserError(f"--max-faces must be at least 100, got {args.max_faces}")
     # fail before the long stages, not after them
     work_size = parse_work_size(getattr(args, "work_size", None))
+    if args.step_deg is not None and not (math.isfinite(args.step_deg) and args.step_deg != 0):
+        raise UserError(f"--step-deg must be a non-zero number of degrees, got {args.step_deg}")
     if args.r_outer is None or args.r_inner is None:
         if args.cameras is None:
             raise UserError("--r-outer and --r-inner are required: the printed rings calibrate the cameras "
