@@ -370,3 +370,26 @@ def test_reconstruct_prints_the_exif_check():
     text = out.getvalue()
     assert "EXIF focal      26 mm equivalent = 1000.0 px (calibrated +10.0 %)" in text
     assert "warning         calibrated focal length 1100.0 px and the EXIF focal length" in text
+
+
+def test_a_huge_image_is_refused_from_its_header(tmp_path):
+    """A 20000 x 20000 PNG (400 MP) is refused by its header, naming the file and the size, before
+    decoding 1.2 GB of pixels; the file itself is small (one colour compresses well)."""
+    import tracemalloc
+    from PIL import Image
+
+    from turntable.images import MAX_PIXELS
+
+    p = tmp_path / "huge.png"
+    Image.new("L", (20000, 20000)).save(p)  # grey, 400 MP: a few hundred kB on disk
+    q = tmp_path / "big.png"
+    Image.new("L", (13000, 12000)).save(q)  # 156 MP: under Pillow's own limit, over ours
+    with pytest.raises(UserError, match=r"big.png: 13000x12000 pixels \(156 MP\) is more than turntable reads"):
+        read_image(q)
+    tracemalloc.start()
+    with pytest.raises(UserError, match=r"huge.png: 400 MP is more than turntable reads \(150 MP\)"):
+        read_image(p)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 100e6, peak  # the header only
+    assert 8064 * 6048 < MAX_PIXELS  # 48 MP phone photos still pass

@@ -96,6 +96,44 @@ def _to_bgr8(img: np.ndarray, path: Path) -> np.ndarray:
                     f"defined); save the photos as 8- or 16-bit")
 
 
+#: Photos larger than this are refused from their header, before decoding (a 20000 x 20000 PNG
+#: would take 1.2 GB as BGR, and far more in the stages); 100 MP medium-format photos still pass.
+MAX_PIXELS = 150_000_000
+
+
+def _check_pixel_count(data: bytes, path: Path) -> None:
+    """``UserError`` when the image's header says it has more than :data:`MAX_PIXELS` pixels.
+
+    The size comes from the header only (Pillow reads it lazily; for HEIF the
+    container's primary image). Files Pillow cannot parse are left to the decoder.
+    """
+    import warnings
+
+    from PIL import Image
+
+    size = None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            if _is_heif(data):
+                import pillow_heif
+
+                size = pillow_heif.open_heif(io.BytesIO(data)).size
+            else:
+                with Image.open(io.BytesIO(data)) as im:
+                    size = im.size
+    except Image.DecompressionBombError as exc:  # Pillow's own limit (about 179 MP) stops the header read
+        n = re.search(r"\((\d+) pixels\)", str(exc))
+        what = f"{int(n.group(1)) / 1e6:.0f} MP" if n else "the image"
+        raise UserError(f"{path}: {what} is more than turntable reads ({MAX_PIXELS / 1e6:.0f} MP); "
+                        f"downscale the photos first") from None
+    except Exception:  # not something Pillow parses: the decoder will say what is wrong
+        return
+    if size is not None and size[0] * size[1] > MAX_PIXELS:
+        raise UserError(f"{path}: {size[0]}x{size[1]} pixels ({size[0] * size[1] / 1e6:.0f} MP) is more than "
+                        f"turntable reads ({MAX_PIXELS / 1e6:.0f} MP); downscale the photos first")
+
+
 def read_image(path: str | Path) -> np.ndarray:
     """An image file as BGR uint8 (H, W, 3), upright (EXIF orientation / HEIF rotation applied).
 
@@ -117,6 +155,7 @@ def read_image(path: str | Path) -> np.ndarray:
         data = path.read_bytes()
     except OSError as exc:
         raise UserError(f"{path}: cannot read file ({exc.strerror or exc})") from None
+    _check_pixel_count(data, path)
     if _is_heif(data):
         img = _decode_heif(data, path)
     else:
