@@ -26,3 +26,16 @@ def test_impossible_numbers_are_refused_naming_the_flag(tmp_path, capsys, argv, 
     err = capsys.readouterr().err
     assert code == 2 and message in err, err
     assert "Traceback" not in err and "internal error" not in err
+
+
+def test_an_internal_error_has_its_own_exit_code(monkeypatch, capsys, tmp_path):
+    """A bug of ours exits 4 with one line (not 1, which means "finished, some inputs failed")."""
+    import turntable.cmd_pattern
+
+    def boom(args):
+        raise RuntimeError("simulated bug")
+
+    monkeypatch.setattr(turntable.cmd_pattern, "run", boom)
+    code = main(["pattern", str(tmp_path / "t.pdf")])
+    err = capsys.readouterr().err
+    assert code == 4 and "internal error: RuntimeError: simulated bug" in err and "Traceback" not in err

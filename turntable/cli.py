@@ -47,6 +47,11 @@ def build_parser(commands: dict[str, tuple[str, str]]) -> argparse.ArgumentParse
     return parser
 
 
+#: Exit code of a failure of ours (a bug), distinct from 1 (finished, some inputs failed), 2 (bad input)
+#: and 3 (reconstruct: a model that failed a check).
+INTERNAL_ERROR = 4
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser(_available())
     args = parser.parse_args(argv)
@@ -66,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"turntable {args.command}: internal error: {type(exc).__name__}: {exc} "
               "(run with -vv for the traceback)", file=sys.stderr)
-        return 1
+        return INTERNAL_ERROR
 
 
 if __name__ == "__main__":
