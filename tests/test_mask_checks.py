@@ -1,4 +1,4 @@
-"""Sense checks for --masks: inverted, all-white and empty masks are refused before any work."""
+"""Sense checks for --masks: inverted and all-white masks are refused before any work."""
 
 from pathlib import Path
 
@@ -33,13 +33,6 @@ def test_an_all_white_mask_is_refused():
     m = _discs()
     m[5] = True
     with pytest.raises(UserError, match=r"1 of 8 masks cover more than 90 % .*\(frame_005.jpg\)"):
-        check_masks(m, NAMES, DIR)
-
-
-def test_mostly_empty_masks_are_refused():
-    m = _discs()
-    m[:6] = False
-    with pytest.raises(UserError, match=r"6 of 8 masks are empty \(frame_000.jpg, .* and 1 more\)"):
         check_masks(m, NAMES, DIR)
 
 

@@ -1,9 +1,10 @@
 """Sense checks for user-given silhouettes (``--masks``): refuse masks that cannot be the object's.
 
 A mask shows the object in white (> 127) on black. Inverted masks (the
-background in white), masks that are all white, or all black, still carve
-"a" model: a block the size of the working volume, or nothing, with exit 0.
-These checks catch them when the masks are read, before any work.
+background in white) or all-white ones still carve "a" model: a block the
+size of the working volume, with exit 0, or an internal error.
+These checks catch them when the masks are read, before any work; empty
+masks are named frame by frame by the silhouette checks later.
 """
 
 from __future__ import annotations
@@ -28,18 +29,16 @@ def check_masks(masks: np.ndarray, names: list[str], masks_dir: Path) -> None:
     """``UserError`` naming the folder, the frames and the reason when the masks are implausible.
 
     ``masks`` (V, h, w) bool, object True, one per frame ``names``. Refused:
-    masks of most frames (more than half) that are empty, that cover more than
-    90 % of the image, or that cover more than half of it while touching all
-    four image borders (inverted: the background is white), and any single
-    mask covering more than 90 % of its image (all white). A few empty masks
-    (the object out of view) are left to the later checks, which report them
-    per frame.
+    masks of most frames (more than half) that cover more than half of the
+    image while touching all four image borders (inverted: the background is
+    white), and any single mask covering more than 90 % of its image (all
+    white). Empty masks are left to the silhouette checks, which reject them
+    frame by frame and name each one (and stop the run when too few remain).
     """
     V = len(masks)
     if V == 0:
         return
     share = masks.reshape(V, -1).mean(axis=1)
-    empty = share == 0.0
     full = share > _FULL
     inverted = np.array([s > _INVERTED and _touches_all_borders(m) for s, m in zip(share, masks)])
 
@@ -55,5 +54,3 @@ def check_masks(masks: np.ndarray, names: list[str], masks_dir: Path) -> None:
     if full.any():
         raise UserError(f"--masks {masks_dir}: {int(full.sum())} of {V} masks cover more than 90 % of their image "
                         f"({listed(full)}): no object's silhouette; {hint}")
-    if empty.sum() > V / 2:
-        raise UserError(f"--masks {masks_dir}: {int(empty.sum())} of {V} masks are empty ({listed(empty)}); {hint}")
