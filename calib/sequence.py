@@ -112,6 +112,33 @@ from .sequence_model import _Fit, _fit, _FrameEdges, _Problem, _project_rotation
 
 
 # --------------------------------------------------------------------------- initialisation
+def _circle_fit(Ts: list[np.ndarray], theta) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Camera centres on one circle about the axis: ``c_k = RotY(theta_k)^T C - d`` by least squares.
+
+    Returns the solution ``(C, d_x, d_z)``, each frame's distance (mm) from its
+    place on the circle, and which frames the fit used: it is refitted without
+    the frames more than 4x the median (and 1 mm) off (up to twice), as one
+    frame turned upside down, or with a wrong angle, pulls a plain fit off
+    every frame's centre. Fewer than half the frames (or 3) left: the plain fit.
+    """
+    A = np.zeros((3 * len(Ts), 5))
+    b = np.zeros(3 * len(Ts))
+    for k, (T, th) in enumerate(zip(Ts, theta)):
+        A[3 * k:3 * k + 3, :3] = rot_y(th).T
+        A[3 * k, 3] = -1.0
+        A[3 * k + 2, 4] = -1.0
+        b[3 * k:3 * k + 3] = camera_centre_table(T)
+    rows = np.ones(len(Ts), bool)
+    for _ in range(3):
+        sol, *_ = np.linalg.lstsq(A[np.repeat(rows, 3)], b[np.repeat(rows, 3)], rcond=None)
+        per_frame = np.linalg.norm((A @ sol - b).reshape(-1, 3), axis=1)
+        keep = per_frame <= max(4.0 * float(np.median(per_frame[rows])), 1.0)
+        if keep.sum() < max(3, len(Ts) // 2) or np.array_equal(keep, rows):
+            break
+        rows = keep
+    return sol, per_frame, rows
+
+
 def _init_turntable(Ts: list[np.ndarray], theta: np.ndarray, yaw_known: bool) -> tuple[np.ndarray, np.ndarray,
                                                                                           np.ndarray, float]:
     """``R_cam_axis, t_cam_axis, d_xz`` from single-view poses and angles; and the camera centres' median
@@ -123,16 +150,8 @@ def _init_turntable(Ts: list[np.ndarray], theta: np.ndarray, yaw_known: bool) ->
     if yaw_known:
         M = sum(T[:3, :3] @ rot_y(th).T for T, th in zip(Ts, theta))
         R_ca = _project_rotation(M)
-        A = np.zeros((3 * len(Ts), 5))
-        b = np.zeros(3 * len(Ts))
-        for k, (T, th) in enumerate(zip(Ts, theta)):
-            A[3 * k:3 * k + 3, :3] = rot_y(th).T
-            A[3 * k, 3] = -1.0
-            A[3 * k + 2, 4] = -1.0
-            b[3 * k:3 * k + 3] = camera_centre_table(T)
-        sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+        sol, per_frame, _ = _circle_fit(Ts, theta)
         C, d = sol[:3], sol[3:]
-        per_frame = np.linalg.norm((A @ sol - b).reshape(-1, 3), axis=1)
         return R_ca, -R_ca @ C, d, float(np.median(per_frame))
     from .camera import rotation_from_normal
 
@@ -425,6 +444,11 @@ def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, i
     state0 = _State(K=K0, dist=np.zeros(5), stroke=stroke0)
     chosen, why, fit, used, checks, centre_rms, rms_pooled = _fit_model(singles, ok, names, step_deg, mode, state0,
                                                                         base, free_stroke)
+    if mode == "auto" and chosen == "handheld":
+        chosen, why, fit, used, checks, centre_rms, rms_pooled = _retry_turntable(
+            singles, reasons, ok, names, step_deg, state0, base, free_stroke,
+            (chosen, why, fit, used, checks, centre_rms, rms_pooled))
+        ok = [k for k in ok if singles[k] is not None]
     bad = _bad_frames(fit, used)
     if bad and len(used) - len(bad) >= 2:
         for k, msg in bad.items():
@@ -459,6 +483,39 @@ def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, i
             _reread_yaw(fit, used, singles, reader)
     return _result(fit, chosen, why, singles, reasons, ok, used, names, size, intr, notes, checks,
                    rms_pooled, centre_rms)
+
+
+def _retry_turntable(singles, reasons, ok, names, step_deg, state0, base, free_stroke, first):
+    """Auto mode chose hand-held: is it one odd frame (upside down, the camera bumped)?
+
+    The frames whose camera centre lies far off the circle the others share
+    (:func:`_circle_fit`; at most a tenth of them, at least one) are left out
+    and the mode chosen again. If the rest is a turntable sequence, they are
+    marked as not calibrated with the reason and the turntable model is kept;
+    otherwise the first, hand-held, result stands, and its reason says that
+    the sequence looked like a turntable but did not fit one.
+    """
+    have_step = step_deg is not None
+    angled = [k for k in ok if singles[k].yaw_ok or have_step]
+    if len(angled) < 4:
+        return first
+    theta_all, _, _ = _initial_angles(singles, angled, names, step_deg)
+    _, per_frame, rows = _circle_fit([singles[k].T for k in angled], [theta_all[k] for k in angled])
+    odd = [k for k, r in zip(angled, rows) if not r]
+    chosen, why = first[0], first[1]
+    if odd and len(odd) <= max(1, len(angled) // 10):
+        rest = [k for k in ok if k not in odd]
+        trial = _fit_model(singles, rest, names, step_deg, "auto", state0, base, free_stroke)
+        if trial[0] == "turntable":
+            for k, off in zip(angled, per_frame):
+                if k in odd:
+                    singles[k] = None
+                    reasons[k] = (f"does not fit the turntable: its camera is {off:.0f} mm off the circle the "
+                                  f"other frames' cameras share (upside down, or the camera moved?)")
+            return (trial[0], trial[1] + f"; {len(odd)} frame(s) off the turntable circle left out", *trial[2:])
+    return (chosen, why + ("; the angle marks were read, so this looked like a turntable: if it is one, "
+                           "look for frames that do not belong (or use --mode turntable)"
+                           if len(angled) >= 3 else ""), *first[2:])
 
 
 def _fit_model(singles, ok, names, step_deg, mode, state0, base, free_stroke):

@@ -343,3 +343,20 @@ def test_stage_rejects_mixed_sizes_and_mismatched_intrinsics():
         calibrate_frames([("a", a, "")], SPEC, intrinsics=intr)
     with pytest.raises(UserError, match="no frames"):
         calibrate_frames([], SPEC)
+
+
+def test_one_upside_down_frame_is_left_out_not_a_switch_to_handheld(monkeypatch):
+    """One photo of a turntable sequence stored upside down (EXIF 180 deg lost): its camera is rolled
+    half a turn about the optical axis, so its pose breaks the fixed camera. Auto mode used to take
+    the whole sequence for hand-held ('camera centres do not lie on one circle'); now that frame is
+    left out, named, with the reason, and the rest is the turntable it is."""
+    rng = np.random.default_rng(12)
+    K, theta, Ts = turntable_truth(rng, n=12, step=30.0)
+    flip = make_T(np.diag([-1.0, -1.0, 1.0]), np.zeros(3))  # 180 deg about the camera's z axis
+    Ts[5] = flip @ Ts[5]
+    seq = run_synthetic(monkeypatch, rng, K, np.zeros(5), Ts, distortion="none")
+    assert seq.mode == "turntable", seq.meta["mode_reason"]
+    assert seq.frames[5].status.startswith("does not fit the turntable"), seq.frames[5].status
+    assert [k for k, f in enumerate(seq.frames) if not f.ok] == [5]
+    assert abs(seq.intrinsics.focal_px / K[0, 0] - 1) < 1e-3
+    assert "off the turntable circle left out" in seq.meta["mode_reason"]
