@@ -35,7 +35,7 @@ from .cameras_io import atomic_write_text, cameras_to_dict, read_cameras, write_
 from .errors import UserError
 from .frames import Frame, iter_frames
 from .progress import Progress
-from .stagecache import StageCache, stage_key
+from .stagecache import StageCache, file_digest, files_digest, stage_key
 from .worksize import WorkSize, choose_work_size
 
 log = logging.getLogger(__name__)
@@ -98,16 +98,14 @@ def _read_masks(masks_dir: Path, names: list[str], ws: WorkSize) -> np.ndarray:
     Returned at the work size (V, h, w) bool: each mask is reduced (area average,
     then > 0.5) as it is read.
     """
-    from .images import IMAGE_SUFFIXES, read_image
+    from .images import read_image
     from .mask_checks import check_masks
 
     if not masks_dir.is_dir():
         raise UserError(f"--masks {masks_dir}: not a folder")
-    by_stem = {p.stem: p for p in masks_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
     (W, H), (w, h) = ws.full, ws.work
     out = np.zeros((len(names), h, w), bool)
-    for i, n in enumerate(names):
-        p = by_stem.get(Path(n).stem)
+    for i, (n, p) in enumerate(zip(names, _mask_files(masks_dir, names))):
         if p is None:
             raise UserError(f"--masks {masks_dir}: no mask for frame {n} (expected {Path(n).stem}.png)")
         m = read_image(p)
@@ -117,6 +115,17 @@ def _read_masks(masks_dir: Path, names: list[str], ws: WorkSize) -> np.ndarray:
         out[i] = ws.reduce(obj) > 127
     check_masks(out, names, masks_dir)  # inverted, all-white, mostly empty: refused before any work
     return out
+
+
+def _mask_files(masks_dir: Path, names: list[str]) -> list[Path | None]:
+    """The mask file of each frame, matched by file stem (None: no mask; no folder: all None)."""
+    from .images import IMAGE_SUFFIXES
+
+    try:
+        by_stem = {p.stem: p for p in sorted(masks_dir.iterdir()) if p.suffix.lower() in IMAGE_SUFFIXES}
+    except OSError:
+        by_stem = {}
+    return [by_stem.get(Path(n).stem) for n in names]
 
 
 def _undistort(images: list[np.ndarray], seq: SequenceCalibration, ws: WorkSize) -> list[np.ndarray]:
@@ -146,15 +155,21 @@ def _known_cameras(opts: ReconstructOptions, progress: Progress, key: str, out: 
         seq = replace(seq, frames=tuple(replace(fp, image=Path(fp.image).name) for fp in seq.frames))
         return seq, {}
     if cam_path.is_file() and not opts.overwrite:
+        # cameras.json is this stage's result only with the detections saved beside it, which name its bytes
+        hit = cache.load("detections", key, _DETECTIONS)
+        if hit is None or str(hit["cameras_json"]) != file_digest(cam_path):
+            return None, {}
         try:
             seq = read_cameras(cam_path)
-            if seq.meta.get("stage_key") == key:
-                progress.note("cameras: reusing cameras.json")
-                hit = cache.load("detections", key) or {}
-                return seq, _conics_from_arrays(hit)
         except UserError:
-            pass
+            return None, {}
+        if seq.meta.get("stage_key") == key:
+            progress.note("cameras: reusing cameras.json")
+            return seq, _conics_from_arrays(hit)
     return None, {}
+
+
+_DETECTIONS = {"names": ("U", ("N",)), "conics": ("f", ("N", 2, 3, 3)), "cameras_json": ("U", ())}
 
 
 def _ring_px_from_camera(seq: SequenceCalibration, name: str, spec: TargetSpec | None) -> float | None:
@@ -215,18 +230,20 @@ def _count_inputs(opts: ReconstructOptions) -> int:
 
 
 def _input_key(opts: ReconstructOptions) -> str:
-    """What the inputs are, without decoding them: the selected files' names, sizes and times."""
+    """What the inputs are: the selected files' names and the hashes of their bytes (a video: the whole file)."""
     from .frames import select_indices
     from .images import list_images
 
     p = Path(opts.input)
     try:
-        files = [list_images(p)[i] for i in select_indices(len(list_images(p)), opts.every, opts.frames)] \
-            if p.is_dir() else [p]
-        stats = [(f.name, f.stat().st_size, f.stat().st_mtime_ns) for f in files]
+        if p.is_dir():
+            listed = list_images(p)
+            files = [listed[i] for i in select_indices(len(listed), opts.every, opts.frames)]
+        else:
+            files = [p]
     except (UserError, OSError):
-        stats = []  # iter_frames will say what is wrong with the input
-    return stage_key(str(p.resolve()) if not p.is_dir() else "", stats, opts.every, opts.frames)
+        files = []  # iter_frames will say what is wrong with the input
+    return stage_key(str(p.resolve()) if not p.is_dir() else "", files_digest(files), opts.every, opts.frames)
 
 
 def _stage_cameras(loaded, opts: ReconstructOptions, progress: Progress, key: str,
@@ -250,8 +267,9 @@ def _stage_cameras(loaded, opts: ReconstructOptions, progress: Progress, key: st
     seq = replace(seq, meta={**seq.meta, "stage_key": key})
     names = [n for n, o in zip(loaded.names, observations) if o is not None]
     conics = np.array([[o.conics["outer"], o.conics["inner"]] for o in observations if o is not None]).reshape(-1, 2, 3, 3)
-    cache.save("detections", key, names=np.array(names, dtype=str), conics=conics)
     write_cameras(out / "cameras.json", seq)
+    cache.save("detections", key, names=np.array(names, dtype=str), conics=conics,
+               cameras_json=np.array(str(file_digest(out / "cameras.json"))))
     return seq, _conics_from_arrays({"names": np.array(names, dtype=str), "conics": conics})
 
 
@@ -269,12 +287,12 @@ class _Silhouettes:
 
 
 def _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress, vol, ws) -> _Silhouettes:
-    hit = cache.load("silhouettes", key)
+    V, (w, h) = len(names), ws.work
+    fields = {"masks": ("b", (V, h, w)), "unknown": ("b", (V, h, w)), "status": ("U", (V,))}
+    hit = cache.load("silhouettes", key, fields)
     if hit is not None:
         progress.note("silhouettes: reused")
-        masks = hit["masks"].astype(bool)
-        unknown = hit["unknown"].astype(bool) if "unknown" in hit else np.zeros_like(masks)
-        return _Silhouettes(masks, unknown, [str(s) for s in hit["status"]])
+        return _Silhouettes(hit["masks"], hit["unknown"], [str(s) for s in hit["status"]])
     with progress.stage("silhouettes") as tick:
         if opts.masks_dir is not None:
             masks = _read_masks(opts.masks_dir, names, ws)
@@ -319,8 +337,10 @@ def _max_rejections(opts: ReconstructOptions) -> int:
 def _stage_hull(masks, K, Ts, opts, cache, key, progress, vol):
     from recon.types import VoxelHull
 
-    hit = cache.load("hull", key)
-    if hit is not None and "touches" in hit:
+    fields = {"values": ("f", (None, None, None)), "origin": ("f", (3,)), "voxel_mm": ("f", ()),
+              "touches": ("iu", (2,))}
+    hit = cache.load("hull", key, fields)
+    if hit is not None:
         progress.note("hull: reused")
         meta = {"touches_side": int(hit["touches"][0]), "touches_top": int(hit["touches"][1])}
         return VoxelHull(values=hit["values"], origin_table=hit["origin"], voxel_mm=float(hit["voxel_mm"]), meta=meta)
@@ -351,7 +371,7 @@ def _silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progre
     except ValueError as exc:
         raise UserError(f"{opts.cameras or opts.input}: {exc}") from None
     vol_key = stage_key(sil_key, vol.key(), opts.resolution, _max_rejections(opts))
-    hit = cache.load("volume", vol_key)
+    hit = cache.load("volume", vol_key, {"size": ("f", (2,)), "grown": ("U", (None,))})
     grown: list[str] = [str(g) for g in hit["grown"]] if hit is not None else []
     if hit is not None:
         vol = replace(vol, radius_mm=float(hit["size"][0]), height_mm=float(hit["size"][1]))
@@ -416,11 +436,13 @@ def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, reco
     progress = progress or Progress(enabled=False)
     out = Path(opts.out)
     _prepare_out(out, opts.overwrite)
-    cache = StageCache(out, enabled=not opts.overwrite)
+    cache = StageCache(out, enabled=not opts.overwrite, note=progress.note)
     skipped: dict[str, str] = {}
 
+    # every stage key starts from this one: the frames' bytes, the target, the options the calibration reads
+    # (the angle marks are read on the work images) and the bytes of --intrinsics and --cameras
     cam_key = stage_key(_input_key(opts), None if opts.spec is None else opts.spec.__dict__, opts.step_deg,
-                        str(opts.intrinsics) if opts.intrinsics else None)
+                        opts.work_size, file_digest(opts.intrinsics), file_digest(opts.cameras))
     seq, conics = _known_cameras(opts, progress, cam_key, out, cache)
     loaded = _load(opts, progress, seq)  # every frame decoded once; only the work size is kept
     ws = loaded.work
@@ -456,7 +478,8 @@ def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, reco
     images_rgb = [cv2.cvtColor(im, cv2.COLOR_BGR2RGB) for im in _undistort([f.bgr for f in used], seq, ws)]
     del frames, good, used, loaded  # the work BGR copies go; images_rgb holds the pixels from here on
 
-    sil_key = stage_key(cam_key, str(opts.masks_dir), Ts, list(ws.work))
+    masks_used = None if opts.masks_dir is None else files_digest(_mask_files(opts.masks_dir, names))
+    sil_key = stage_key(cam_key, masks_used, names, K, seq.intrinsics.dist, Ts, list(ws.work))
     sil, keep, rejected, conservative, hull, vol, vol_report = _silhouettes_and_hull(
         images_rgb, names, K, Ts, opts, cache, sil_key, progress, ws)
     for n, why in rejected.items():
