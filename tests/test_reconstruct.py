@@ -340,3 +340,30 @@ def test_negative_max_rejections_fails_before_any_work(tmp_path, scene, capsys):
     err = capsys.readouterr().err
     assert "--max-rejections must be 0 or more" in err and "Traceback" not in err
     assert not out.exists()
+
+
+def test_given_masks_are_undistorted_like_the_photos():
+    """--masks are drawn on the photos, which the pipeline undistorts before carving with the
+    undistorted camera: the masks must move with them. A dot drawn where a lens with k1 = -0.2
+    images a point lands, after undistortion, where the pinhole camera images it (it stayed at the
+    distorted place before: 20 px off here)."""
+    import cv2
+
+    from calib.types import Intrinsics
+    from turntable.reconstruct import _undistort_masks
+    from turntable.worksize import WorkSize
+
+    W, H = 640, 480
+    intr = Intrinsics.from_focal(500.0, W, H, dist=[-0.2, 0.0, 0.0, 0.0, 0.0])
+    ws = WorkSize(full=(W, H), work=(W, H), why="test")
+    p = np.array([[0.5, 0.3, 1.0]])
+    uv_d = cv2.projectPoints(p, np.zeros(3), np.zeros(3), intr.K, intr.dist)[0].reshape(2)
+    uv_u = (intr.K @ p[0])[:2]
+    assert np.linalg.norm(uv_d - uv_u) > 15
+    m = np.zeros((1, H, W), np.uint8)
+    cv2.circle(m[0], tuple(int(round(v)) for v in uv_d), 5, 1, -1)
+    out = _undistort_masks(m.astype(bool), intr, ws)
+    ys, xs = np.nonzero(out[0])
+    assert np.linalg.norm([xs.mean() - uv_u[0], ys.mean() - uv_u[1]]) < 1.0
+    no_lens = Intrinsics.from_focal(500.0, W, H)
+    np.testing.assert_array_equal(_undistort_masks(m.astype(bool), no_lens, ws), m.astype(bool))

@@ -130,7 +130,19 @@ def _mask_files(masks_dir: Path, names: list[str]) -> list[Path | None]:
 
 def _undistort(images: list[np.ndarray], seq: SequenceCalibration, ws: WorkSize) -> list[np.ndarray]:
     """Work images without lens distortion (same camera matrix ``ws.K(K)``; the coefficients are scale-free)."""
-    intr = seq.intrinsics
+    return _undistort_with(images, seq.intrinsics, ws)
+
+
+def _undistort_masks(masks: np.ndarray, intr, ws: WorkSize) -> np.ndarray:
+    """``--masks`` (V, h, w) bool drawn on the photos, undistorted like the work images (the hull is carved
+    with the undistorted camera): coverage resampled bilinearly, > 1/2 is object."""
+    if intr is None or not intr.has_distortion:
+        return masks
+    m8 = _undistort_with([m.astype(np.uint8) * 255 for m in masks], intr, ws)
+    return np.stack([m > 127 for m in m8]) if len(m8) else masks
+
+
+def _undistort_with(images: list[np.ndarray], intr, ws: WorkSize) -> list[np.ndarray]:
     if not intr.has_distortion:
         return images
     K = ws.K(intr.K)
@@ -286,7 +298,7 @@ class _Silhouettes:
     status: list[str]  # "ok", "conservative: <reason>" (kept) or "rejected: <reason>" (dropped)
 
 
-def _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress, vol, ws) -> _Silhouettes:
+def _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress, vol, ws, intr=None) -> _Silhouettes:
     V, (w, h) = len(names), ws.work
     fields = {"masks": ("b", (V, h, w)), "unknown": ("b", (V, h, w)), "status": ("U", (V,))}
     hit = cache.load("silhouettes", key, fields)
@@ -295,7 +307,7 @@ def _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress, vol
         return _Silhouettes(hit["masks"], hit["unknown"], [str(s) for s in hit["status"]])
     with progress.stage("silhouettes") as tick:
         if opts.masks_dir is not None:
-            masks = _read_masks(opts.masks_dir, names, ws)
+            masks = _undistort_masks(_read_masks(opts.masks_dir, names, ws), intr, ws)
             unknown = np.zeros_like(masks)
             status = ["ok" if m.any() else "rejected: the mask is empty" for m in masks]
         else:
@@ -358,7 +370,7 @@ def _stage_hull(masks, K, Ts, opts, cache, key, progress, vol):
     return hull
 
 
-def _silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progress, ws):
+def _silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progress, ws, intr=None):
     """Silhouettes and hull in a working volume grown until the object fits (or the view ends).
 
     Returns (silhouettes, kept indices, rejected, conservative, hull, volume, volume report).
@@ -387,7 +399,8 @@ def _silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progre
     for _ in range(32):  # each pass grows the volume or ends the loop; the bound is a safety net
         key = stage_key(sil_key, vol.key()) if automatic else sil_key  # user masks do not depend on it
         if key != sil_for:
-            sil, sil_for = _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress, vol, ws), key
+            sil, sil_for = _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress, vol, ws,
+                                              intr), key
         keep, rejected, conservative = _silhouette_verdicts(names, sil.status)
         if len(keep) < MIN_VIEWS:
             return sil, keep, rejected, conservative, None, vol, {}
@@ -479,9 +492,10 @@ def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, reco
     del frames, good, used, loaded  # the work BGR copies go; images_rgb holds the pixels from here on
 
     masks_used = None if opts.masks_dir is None else files_digest(_mask_files(opts.masks_dir, names))
-    sil_key = stage_key(cam_key, masks_used, names, K, seq.intrinsics.dist, Ts, list(ws.work))
+    # "masks undistorted": given masks are undistorted like the photos since this key (older caches recompute)
+    sil_key = stage_key(cam_key, masks_used, "masks undistorted", names, K, seq.intrinsics.dist, Ts, list(ws.work))
     sil, keep, rejected, conservative, hull, vol, vol_report = _silhouettes_and_hull(
-        images_rgb, names, K, Ts, opts, cache, sil_key, progress, ws)
+        images_rgb, names, K, Ts, opts, cache, sil_key, progress, ws, seq.intrinsics)
     for n, why in rejected.items():
         skipped[n] = f"silhouette rejected: {why}"
         progress.note(f"silhouettes: frame {n} rejected: {why}")
