@@ -31,7 +31,7 @@ import numpy as np
 from calib.target import TargetSpec
 from calib.types import SequenceCalibration
 
-from .cameras_io import atomic_write_text, cameras_to_dict, read_cameras, write_cameras
+from .cameras_io import atomic_write_text, read_cameras, write_cameras
 from .errors import UserError
 from .frames import Frame, iter_frames
 from .progress import Progress
