@@ -209,7 +209,9 @@ def _table_plate(rect: np.ndarray, seen: np.ndarray, T: np.ndarray, tau: float, 
     over the views within ``_ARC_DEG`` of its azimuth (at least a third of the
     sequence: the nearest ones, for a partial turn); where it differs from
     the median over all views (by more than ``tau``), it replaces it, and the
-    agreement that decides trust is counted over those views. Elsewhere all
+    agreement that decides trust is counted over those views (looked for only
+    where fewer than 95 % of all views agree: elsewhere nothing hid the
+    point). Elsewhere all
     views count: seen from its own side a point is nearer and less oblique
     than through a gap of the object from the far side (a chair's back), so
     the arc alone would explain the latter worse. Within the working volume
@@ -230,30 +232,37 @@ def _table_plate(rect: np.ndarray, seen: np.ndarray, T: np.ndarray, tau: float, 
     bins = np.floor(np.mod(phi + 180.0, 360.0) / _ARC_BIN_DEG).astype(int) % nb
     bins[np.hypot(ii - c, jj - c) > radius_px] = nb  # beyond the volume: one group, every view
     least = min(V, max(5, int(math.ceil(V / 3))))
-    plate = np.zeros((n, n, 3), np.uint8)
+    full = _median_frames(rect)
+    lo_f, hi_f = _envelope(full)
+    agree = np.mean([_range_dist(r, lo_f, hi_f) < tau for r in rect], axis=0)
+    all_seen = seen.all(axis=0)
+    # where (nearly) every view agrees nothing hid the point: the arcs are needed only elsewhere
+    doubt = (bins < nb) & (agree < 0.95)
+    plate = full.copy()
     frames_of = []
-    for b in range(nb + 1):
+    for b in range(nb):
         centre = -180.0 + (b + 0.5) * _ARC_BIN_DEG
         d = np.abs(np.mod(cam - centre + 180.0, 360.0) - 180.0)
-        sel = np.flatnonzero(d <= _ARC_DEG) if b < nb else np.arange(V)
+        sel = np.flatnonzero(d <= _ARC_DEG)
         if len(sel) < least:
             sel = np.argsort(d, kind="stable")[:least]
-        frames_of.append(sel)
-        pix = bins == b
-        plate[pix] = _median_frames(rect[:, pix][sel])
-    full = _median_frames(rect)
-    same = _colour_dist(plate, full) < tau
-    plate[same] = full[same]
+        pix = doubt & (bins == b)
+        frames_of.append((sel, pix))
+        if pix.any():
+            plate[pix] = _median_frames(rect[:, pix][sel])
+    changed = _colour_dist(plate, full) >= tau
+    if not changed.any():
+        return full, lo_f, hi_f, ((agree >= _TRUST) & all_seen).astype(np.uint8)
     lo, hi = _envelope(plate)
-    agree = np.zeros((n, n), np.float32)
-    all_seen = np.ones((n, n), bool)
-    for b, sel in enumerate(frames_of):
-        pix = bins == b
-        agree[pix] = np.mean(_range_dist(rect[:, pix][sel], lo[pix], hi[pix]) < tau, axis=0)
-        all_seen[pix] = seen[:, pix][sel].all(axis=0)
-    agree_full = np.mean([_range_dist(r, lo, hi) < tau for r in rect], axis=0)
-    agree[same] = agree_full[same]
-    all_seen[same] = seen.all(axis=0)[same]
+    near = cv2.dilate(changed.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0  # the envelope changed there
+    for sel, pix in frames_of:
+        pix = pix & changed
+        if pix.any():
+            agree[pix] = np.mean(_range_dist(rect[:, pix][sel], lo[pix], hi[pix]) < tau, axis=0)
+            all_seen[pix] = seen[:, pix][sel].all(axis=0)
+    rest = near & ~changed  # the envelope moved under them: count all views again
+    if rest.any():
+        agree[rest] = np.mean(_range_dist(rect[:, rest], lo[rest], hi[rest]) < tau, axis=0)
     return plate, lo, hi, ((agree >= _TRUST) & all_seen).astype(np.uint8)
 
 
