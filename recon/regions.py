@@ -139,6 +139,8 @@ def _blend_kept(h: np.ndarray, F: np.ndarray, labels: np.ndarray, keep: np.ndarr
     """
     kept_vox = ndimage.maximum_filter(np.where(keep[labels], labels, 0), size=3) > 0
     rejected_vox = (ndimage.maximum_filter(np.where(keep[labels], 0, labels), size=3) > 0) & ~kept_vox
+    if not (kept_vox.any() and rejected_vox.any()):  # no border between the two: nothing to ramp
+        return np.where(kept_vox, F, h).astype(np.float32), kept_vox
     sigma = max(1.0, region_mm / 6.0 / voxel_mm)
     s_k = ndimage.gaussian_filter(kept_vox.astype(np.float32), sigma)
     s_r = ndimage.gaussian_filter(rejected_vox.astype(np.float32), sigma)
