@@ -14,8 +14,9 @@ What calibration knows replaces a global threshold:
   rectified onto the plane ``Y = 0`` with the plane homography and the median
   over frames there is a *table plate* (angle marks, paper, disc), warped back
   into each frame (near the object, from the views that see each point from
-  its own side where the others disagree: see :func:`_table_plate`). A textured object is static in neither: above the plane it
-  moves in the rectified frames by parallax, and it turns in the image. A
+  its own side where the others disagree: see :func:`_table_plate`). A
+  textured object is static in neither: above the plane it moves in the
+  rectified frames by parallax, and it turns in the image. A
   plate is trusted at a pixel where most frames agree with it. A plain body of
   revolution is static in the image too (the same picture in every frame):
   when many frames fail their checks, a second pass trusts the room plate
@@ -76,8 +77,8 @@ from calib.camera import as_K, as_poses, plane_homography, project_points
 from calib.target import TargetSpec
 
 from .silhouette_checks import camera_azimuths_deg, fill_gaps, frame_status
-from .silhouette_doubt import (_colour_dist, _colour_set, _doubtful, _envelope, _in_set, _range_dist, _shadow_dist,
-                               _texture_match)
+from .silhouette_doubt import (_MAJOR, _colour_dist, _colour_set, _doubtful, _envelope, _in_set, _range_dist,
+                               _shadow_dist, _texture_match)
 
 __all__ = ["SilhouetteResult", "estimate_silhouettes", "cylinder_region", "rectify_to_table"]
 
@@ -371,7 +372,7 @@ def _initial_labels(img, region, room: _Plate, table: _Plate, tau, room_colours,
     # does not show: the shaded side of a grey or white object on white paper is a darker copy of
     # the paper too (white vase: the whole body below the horizon was taken for shadow).
     n_sure = int(sure.sum())
-    sure_colours = _colour_set(img[sure], min_count=max(3, int(0.002 * n_sure))) if n_sure >= 50 else None
+    sure_colours = _colour_set(img[sure], min_count=max(3, int(_MAJOR * n_sure))) if n_sure >= 50 else None
     table_shadow = s_tab < tau
     if sure_colours is not None:
         table_shadow &= ~_in_set(img, sure_colours)
