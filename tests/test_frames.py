@@ -54,14 +54,19 @@ def test_all_unreadable(tmp_path):
         load_frames(tmp_path)
 
 
-def test_video_frames_and_undecodable_video(tmp_path):
-    path = tmp_path / "clip.avi"
-    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (64, 48))
+def _grey_video(path, n: int, size: tuple[int, int], step: int):
+    """An MJPG video of ``n`` flat grey frames (frame i at grey ``step * i``), or skip the test."""
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, size)
     if not vw.isOpened():
         pytest.skip("no video writer in this OpenCV build")
-    for i in range(6):
-        vw.write(np.full((48, 64, 3), 40 * i, np.uint8))
+    for i in range(n):
+        vw.write(np.full((size[1], size[0], 3), step * i, np.uint8))
     vw.release()
+    return path
+
+
+def test_video_frames_and_undecodable_video(tmp_path):
+    path = _grey_video(tmp_path / "clip.avi", 6, (64, 48), 40)
     frames = load_frames(path, every=2)
     assert len(frames) == 3 and frames[0].bgr.shape == (48, 64, 3)
     broken = tmp_path / "broken.mp4"
@@ -129,13 +134,7 @@ def test_select_indices_every_and_evenly():
 
 
 def test_video_frames_spread_evenly(tmp_path):
-    path = tmp_path / "turn.avi"
-    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (32, 24))
-    if not vw.isOpened():
-        pytest.skip("no video writer in this OpenCV build")
-    for i in range(20):
-        vw.write(np.full((24, 32, 3), 10 * i, np.uint8))
-    vw.release()
+    path = _grey_video(tmp_path / "turn.avi", 20, (32, 24), 10)
     frames = load_frames(path, count=5)
     assert [f.name for f in frames] == [f"turn_{i:05d}.png" for i in (0, 4, 8, 12, 16)]
     assert [round(float(f.bgr.mean()) / 10) for f in frames] == [0, 4, 8, 12, 16]  # the frames named
