@@ -187,7 +187,8 @@ def find_stroke_edges(grey: np.ndarray, uv_px: np.ndarray, normals: np.ndarray,
         white = np.maximum(np.maximum(white_in, white_out), 1.0)
         c_rel, g_rel = np.minimum(c_in, c_out) / white, np.minimum(g_in, g_out) / white
         ok &= (c_rel > 0.45 * np.median(c_rel[ok])) & (np.maximum(c_in, c_out) < 2.2 * np.minimum(c_in, c_out))
-        ok &= (g_rel > 0.4 * np.median(g_rel[ok])) & (np.maximum(g_in, g_out) < 2.5 * np.minimum(g_in, g_out))
+        if ok.any():  # none left with a paper-like contrast: no gradient to compare, nothing to keep
+            ok &= (g_rel > 0.4 * np.median(g_rel[ok])) & (np.maximum(g_in, g_out) < 2.5 * np.minimum(g_in, g_out))
     ok = _widen_rejections(ok, uv_px, gap_px)
     inner = np.where(ok[:, None], uv_px + f_in[:, None] * normals, np.nan)
     outer = np.where(ok[:, None], uv_px + f_out[:, None] * normals, np.nan)
