@@ -209,8 +209,11 @@ def auto_scan(scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("auto") / "scan"
     assert main(["reconstruct", *map(str, _auto(scene, out)), "--resolution", "32", "--max-faces", "5000",
                  "--no-fusion", "--quiet"]) == 0
-    assert sorted(p.name for p in (out / ".turntable").iterdir()) == \
+    assert sorted(p.name for p in (out / ".turntable").glob("*.npz")) == \
         ["detections.npz", "hull.npz", "silhouettes.npz", "volume.npz"]
+    # beside the stages: the cached calibration, the lock and the record of the published set, nothing else
+    assert sorted(p.name for p in (out / ".turntable").iterdir() if p.suffix != ".npz") == \
+        ["cameras.json", "lock", "published.json"]
     return out, json.loads((out / "summary.json").read_text())["mesh"]["volume_cm3"]
 
 

@@ -52,17 +52,51 @@ def build_parser(commands: dict[str, tuple[str, str]]) -> argparse.ArgumentParse
 INTERNAL_ERROR = 4
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (or SIGHUP) received: unwound like Ctrl-C, so every run cleans up the same way."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise Terminated(signum)
+
+
+def _handle_termination() -> dict:
+    """Turn SIGTERM/SIGHUP into :class:`Terminated` (main thread only); returns the previous handlers."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    previous = {}
+    for name in ("SIGTERM", "SIGHUP"):
+        sig = getattr(signal, name, None)
+        if sig is not None and signal.getsignal(sig) in (signal.SIG_DFL, None):
+            previous[sig] = signal.signal(sig, _raise_terminated)
+    return previous
+
+
 def main(argv: list[str] | None = None) -> int:
+    import signal
+
     parser = build_parser(_available())
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     # force: rebind to the current stderr on every call (tests, or a host program, may swap it)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", force=True)
+    previous = _handle_termination()
     try:
         return int(importlib.import_module(args._module).run(args) or 0)
     except UserError as exc:
         print(f"turntable {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except Terminated as exc:
+        print(f"turntable {args.command}: terminated (signal {exc.signum})",
+              file=sys.stderr)
+        return 128 + exc.signum
     except KeyboardInterrupt:
         print(f"turntable {args.command}: interrupted", file=sys.stderr)
         return 130
@@ -72,6 +106,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"turntable {args.command}: internal error: {type(exc).__name__}: {exc} "
               "(run with -vv for the traceback)", file=sys.stderr)
         return INTERNAL_ERROR
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 if __name__ == "__main__":

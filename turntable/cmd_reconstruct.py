@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 import math
-
-import os
 import sys
-import time
 from pathlib import Path
 
 from .cmd_calibrate import add_target_arguments, target_from_args
@@ -136,26 +133,12 @@ def run(args) -> int:
         raise UserError(f"--out {out}: exists and is a file, not a folder")
     from .recording import Recorder
 
-    created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
-    tmp_rrd = out / f".recording.{os.getpid()}.rrd"
-    t0 = time.perf_counter()
     progress = Progress(enabled=not args.quiet)
-    rec = Recorder(tmp_rrd)
+    rec = Recorder()  # in memory; reconstruct writes it to OUT/recording.rrd with the other outputs
     try:
-        try:
-            res = reconstruct(opts, progress=progress, recorder=rec)
-        finally:
-            rec.close()
-        tmp_rrd.replace(out / "recording.rrd")
-    except BaseException:
-        tmp_rrd.unlink(missing_ok=True)
-        if created and not any(out.iterdir()):  # nothing finished: leave no empty folder behind
-            out.rmdir()
-        raise
-    res.files["recording"] = out / "recording.rrd"
-    res.summary["files"]["recording"] = str(out / "recording.rrd")
-    res.summary["time_s"]["total"] = round(time.perf_counter() - t0, 2)
+        res = reconstruct(opts, progress=progress, recorder=rec)
+    finally:
+        rec.close()
     print_summary(res)
     if res.failed_checks:
         print(f"turntable reconstruct: FINISHED, BUT THE MODEL FAILED {len(res.failed_checks)} CHECK(S): "

@@ -11,8 +11,11 @@ them, writes their artifacts and reports):
 6. mesh        watertight mesh, decimation, vertex colours (``recon.meshing``, ``recon.colorize``)
 7. export      model.glb/.ply/.obj, cameras.json, points.ply, recording.rrd, summary.json
 
-Everything in OUT is written atomically; finished stages are cached in
-``OUT/.turntable`` and reused on a re-run unless ``overwrite``.
+OUT is a transaction (:mod:`turntable.outdir`): one run at a time; the new
+files are built in ``OUT/.turntable/staging.<pid>`` and switched in only when
+every one is written, so a failed, interrupted or killed run leaves the
+previous outputs as they were. Finished stages are cached in ``OUT/.turntable``
+and reused on a re-run unless ``overwrite``.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import json
 import logging
 import math
 import os
-import shutil
+import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -34,6 +37,7 @@ from calib.types import SequenceCalibration
 from .cameras_io import atomic_write_text, read_cameras, write_cameras
 from .errors import UserError
 from .frames import Frame, iter_frames
+from .outdir import DISK_FULL_ERRNOS, OutputFolder, write_error
 from .progress import Progress
 from .stagecache import StageCache, file_digest, files_digest, stage_key
 from .worksize import WorkSize, choose_work_size
@@ -84,12 +88,10 @@ MIN_VIEWS = 3
 
 
 # --------------------------------------------------------------------------- helpers
-def _prepare_out(out: Path, overwrite: bool) -> None:
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out {out}: exists and is a file, not a folder")
-    if out.is_dir() and overwrite:
-        shutil.rmtree(out / ".turntable", ignore_errors=True)
-    out.mkdir(parents=True, exist_ok=True)
+def _clear_cache(cache: StageCache) -> None:
+    """``--overwrite``: forget every finished stage (the lock and the published set's record stay)."""
+    for p in list(cache.dir.glob("*.npz")) + [cache.dir / "cameras.json"]:
+        p.unlink(missing_ok=True)
 
 
 def _read_masks(masks_dir: Path, names: list[str], ws: WorkSize) -> np.ndarray:
@@ -157,10 +159,10 @@ def _frame_path(opts: ReconstructOptions, name: str) -> Path:
 
 
 # --------------------------------------------------------------------------- stages
-def _known_cameras(opts: ReconstructOptions, progress: Progress, key: str, out: Path,
+def _known_cameras(opts: ReconstructOptions, progress: Progress, key: str,
                    cache: StageCache) -> tuple[SequenceCalibration | None, dict]:
-    """Cameras that need no ring detection: ``--cameras``, or this run's ``cameras.json`` from before."""
-    cam_path = out / "cameras.json"
+    """Cameras that need no ring detection: ``--cameras``, or the cached calibration of an earlier run."""
+    cam_path = cache.dir / "cameras.json"
     if opts.cameras is not None:
         seq = read_cameras(opts.cameras)
         # cameras.json may name frames with a folder ("images/frame_000.jpg"): match by file name
@@ -259,7 +261,7 @@ def _input_key(opts: ReconstructOptions) -> str:
 
 
 def _stage_cameras(loaded, opts: ReconstructOptions, progress: Progress, key: str,
-                   out: Path, cache: StageCache) -> tuple[SequenceCalibration, dict]:
+                   cache: StageCache) -> tuple[SequenceCalibration, dict]:
     """The sequence calibration from the rings found at full resolution, and the ring conics per frame name."""
     from .sequence_stage import calibrate_detected
 
@@ -279,9 +281,10 @@ def _stage_cameras(loaded, opts: ReconstructOptions, progress: Progress, key: st
     seq = replace(seq, meta={**seq.meta, "stage_key": key})
     names = [n for n, o in zip(loaded.names, observations) if o is not None]
     conics = np.array([[o.conics["outer"], o.conics["inner"]] for o in observations if o is not None]).reshape(-1, 2, 3, 3)
-    write_cameras(out / "cameras.json", seq)
+    cam_path = cache.dir / "cameras.json"
+    write_cameras(cam_path, seq)
     cache.save("detections", key, names=np.array(names, dtype=str), conics=conics,
-               cameras_json=np.array(str(file_digest(out / "cameras.json"))))
+               cameras_json=np.array(str(file_digest(cam_path))))
     return seq, _conics_from_arrays({"names": np.array(names, dtype=str), "conics": conics})
 
 
@@ -445,18 +448,48 @@ def _silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progre
 
 # --------------------------------------------------------------------------- main
 def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, recorder=None) -> ReconstructResult:
-    """Run every stage; see the module docstring. Raises ``UserError`` on bad input."""
+    """Run every stage; see the module docstring. Raises ``UserError`` on bad input.
+
+    ``recorder`` (a :class:`turntable.recording.Recorder`) is written to
+    ``OUT/recording.rrd`` with the other outputs. OUT changes only if the run
+    finishes (exit code 0, 1 or 3); an error, Ctrl-C or SIGTERM leaves it as it
+    was, and a full disk ends the run with a ``UserError`` naming the file.
+    """
     progress = progress or Progress(enabled=False)
     out = Path(opts.out)
-    _prepare_out(out, opts.overwrite)
+    t0 = time.perf_counter()
+    with OutputFolder(out) as folder:
+        for line in folder.cleaned:
+            progress.note(f"out: {line}")
+        try:
+            res = _run(opts, progress, recorder, folder, t0)
+            folder.publish()
+        except OSError as exc:
+            if exc.errno in DISK_FULL_ERRNOS or _under(exc.filename, out):
+                raise write_error(exc, out, folder.staging) from None
+            raise
+    return res
+
+
+def _under(filename, folder: Path) -> bool:
+    try:
+        return filename is not None and Path(os.fsdecode(filename)).resolve().is_relative_to(folder.resolve())
+    except (OSError, ValueError, TypeError):
+        return False
+
+
+def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputFolder, t0: float) -> ReconstructResult:
+    out, staging = folder.out, folder.staging
     cache = StageCache(out, enabled=not opts.overwrite, note=progress.note)
+    if opts.overwrite:
+        _clear_cache(cache)
     skipped: dict[str, str] = {}
 
     # every stage key starts from this one: the frames' bytes, the target, the options the calibration reads
     # (the angle marks are read on the work images) and the bytes of --intrinsics and --cameras
     cam_key = stage_key(_input_key(opts), None if opts.spec is None else opts.spec.__dict__, opts.step_deg,
                         opts.work_size, file_digest(opts.intrinsics), file_digest(opts.cameras))
-    seq, conics = _known_cameras(opts, progress, cam_key, out, cache)
+    seq, conics = _known_cameras(opts, progress, cam_key, cache)
     loaded = _load(opts, progress, seq)  # every frame decoded once; only the work size is kept
     ws = loaded.work
     frames = [Frame(n, im, "" if im is not None else why) for n, im, why in
@@ -468,9 +501,9 @@ def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, reco
     good = [f for f in frames if f.bgr is not None]
     unreadable = [f.name for f in frames if f.bgr is None]
     if seq is None:
-        seq, conics = _stage_cameras(loaded, opts, progress, cam_key, out, cache)
+        seq, conics = _stage_cameras(loaded, opts, progress, cam_key, cache)
     else:
-        _check_known_cameras(seq, good, opts, out, ws)
+        _check_known_cameras(seq, good, opts, ws)
     exif_focal = _exif_focal(good, seq, opts, progress)
     by_name = {fp.image: fp for fp in seq.frames}
     used: list[Frame] = []
@@ -529,7 +562,13 @@ def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, reco
 
     stats = mesh_stats(mesh)
     failed = _failed_checks(stats, vol_report)
-    files = _export(out, opts, seq, names, mesh, fused, progress)
+    files = _export(staging, opts, seq, names, mesh, fused, progress)
+    if recorder is not None:
+        with progress.stage("recording"):
+            _record(recorder, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh, conics, ws)
+            files["recording"] = recorder.save(staging / "recording.rrd")
+    files = {k: out / p.relative_to(staging) for k, p in files.items()}  # where they will be once published
+    files["summary"] = out / "summary.json"
     summary = _summary(seq, names, skipped, mesh, progress, fusion_note, files)
     summary["mesh"]["pieces"] = stats.n_bodies
     summary["working_volume"] = vol_report
@@ -537,19 +576,17 @@ def reconstruct(opts: ReconstructOptions, progress: Progress | None = None, reco
     summary["failed_checks"] = failed
     summary["exif_focal"] = exif_focal
     summary["work_size"] = ws.report()
-    atomic_write_text(out / "summary.json", json.dumps(summary, indent=1) + "\n")
-    files["summary"] = out / "summary.json"
-    if recorder is not None:
-        _record(recorder, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh, conics, ws)
+    summary["time_s"]["total"] = round(time.perf_counter() - t0, 2)
+    atomic_write_text(staging / "summary.json", json.dumps(summary, indent=1) + "\n")
     exit_code = EXIT_CHECK_FAILED if failed else EXIT_UNREADABLE if unreadable else EXIT_OK
     return ReconstructResult(out=out, files=files, frames_used=names, frames_skipped=skipped,
                              summary=summary, exit_code=exit_code, failed_checks=failed,
                              unreadable=unreadable)
 
 
-def _check_known_cameras(seq: SequenceCalibration, good: list[Frame], opts: ReconstructOptions, out: Path,
+def _check_known_cameras(seq: SequenceCalibration, good: list[Frame], opts: ReconstructOptions,
                          ws: WorkSize) -> None:
-    """``--cameras`` must be for photos of this size and name every readable frame; it is copied to OUT."""
+    """``--cameras`` must be for photos of this size and name every readable frame."""
     if opts.cameras is None:
         return
     intr = seq.intrinsics
@@ -560,7 +597,6 @@ def _check_known_cameras(seq: SequenceCalibration, good: list[Frame], opts: Reco
     missing = [f.name for f in good if f.name not in names]
     if missing:
         raise UserError(f"--cameras {opts.cameras}: no camera for frame(s) {', '.join(missing[:5])}")
-    write_cameras(out / "cameras.json", seq)
 
 
 def _exif_focal(frames: list[Frame], seq: SequenceCalibration, opts: ReconstructOptions,
@@ -589,19 +625,20 @@ def _failed_checks(stats, vol_report: dict) -> list[str]:
     return failed
 
 
-def _export(out, opts, seq, names, mesh, fused, progress) -> dict[str, Path]:
+def _export(staging: Path, opts, seq, names, mesh, fused, progress) -> dict[str, Path]:
+    """Write the model, cameras and exports into ``staging`` (the folder that becomes OUT's new set)."""
     from recon.export import export_mesh
 
+    out = staging
     with progress.stage("export"):
         files = dict(export_mesh(mesh, out))
+        write_cameras(out / "cameras.json", seq)
         files["cameras"] = out / "cameras.json"
         if fused is not None and len(fused.pts_table):
             from .pointsio import write_points_ply
 
             write_points_ply(out / "points.ply", fused)
             files["points"] = out / "points.ply"
-        else:  # a points.ply of an earlier run would not belong to this model
-            (out / "points.ply").unlink(missing_ok=True)
         T_by_name = {fp.image: fp.T_cam_table for fp in seq.frames}
         intr = seq.intrinsics  # the original photos: their distortion, not the undistorted copies'
         if opts.export_colmap:
@@ -615,8 +652,8 @@ def _export(out, opts, seq, names, mesh, fused, progress) -> dict[str, Path]:
         if opts.export_nerfstudio:
             from recon.export import export_nerfstudio
 
-            # file paths relative to OUT, pointing at the user's original photos
-            rel = [(os.path.relpath(_frame_path(opts, n), out), T_by_name[n]) for n in names]
+            # file paths relative to OUT (where transforms.json is published), pointing at the user's photos
+            rel = [(os.path.relpath(_frame_path(opts, n), opts.out), T_by_name[n]) for n in names]
             files["nerfstudio"] = export_nerfstudio(intr.K, intr.width, intr.height, rel, out, dist=intr.dist,
                                                     ply_file_path="model.ply")
     return files

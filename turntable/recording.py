@@ -11,6 +11,11 @@ Layout (table frame, millimetres, +Y up — ``rr.ViewCoordinates.RIGHT_HAND_Y_UP
 - ``world/hull``, ``world/points``, ``world/mesh``: static results.
 
 A blueprint puts the 3D view beside the current image.
+
+The recording is kept in memory and written by :meth:`Recorder.save` with an
+ordinary file write (whole or not at all): Rerun's own file sink blocked
+forever in its flush when the disk filled (rerun-sdk 0.41), where a write of
+ours fails at once with "no space left".
 """
 
 from __future__ import annotations
@@ -26,15 +31,15 @@ __all__ = ["Recorder"]
 
 
 class Recorder:
-    """Writes a ``.rrd`` file; use as a context manager so the footer gets written."""
+    """Records in memory; :meth:`save` writes the ``.rrd`` (as a context manager: to ``path`` on success)."""
 
-    def __init__(self, path: str | Path, *, application_id: str = "turntable"):
+    def __init__(self, path: str | Path | None = None, *, application_id: str = "turntable"):
         import rerun as rr
 
         self._rr = rr
-        self.path = Path(path)
+        self.path = None if path is None else Path(path)
         self.rec = rr.RecordingStream(application_id)
-        self.rec.save(str(self.path))
+        self._memory = self.rec.memory_recording()
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
         self._send_blueprint()
 
@@ -124,12 +129,25 @@ class Recorder:
         self.rec.log("world/camera/image/silhouette", rr.LineStrips2D(strips, colors=[[255, 80, 0]] * len(strips)))
 
     # -- lifetime -----------------------------------------------------------------------
+    def save(self, path: str | Path) -> Path:
+        """Write everything logged so far to ``path`` (atomically) and end the recording."""
+        from recon.fileio import atomic_write_bytes
+
+        self.rec.flush(timeout_sec=60.0)  # encoding into memory: no disk involved
+        data = self._memory.drain_as_bytes()
+        self.rec.disconnect()
+        atomic_write_bytes(path, data)
+        return Path(path)
+
     def close(self) -> None:
-        self.rec.flush()
+        """End the recording without writing anything."""
         self.rec.disconnect()
 
     def __enter__(self) -> "Recorder":
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, *exc) -> None:
+        if exc_type is None and self.path is not None:
+            self.save(self.path)
+        else:
+            self.close()
