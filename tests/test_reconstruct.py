@@ -273,6 +273,24 @@ def test_rejected_silhouettes_are_named_with_their_reason(scene, tmp_path, capsy
     assert main(args + ["--out", str(tmp_path / "scan2")]) == 2
     err = capsys.readouterr().err
     assert "only 1 of 12 silhouettes usable" in err and f"{files[1].stem}.jpg: the mask is empty" in err
+    assert f"{files[1].name} has no pixel above 127, the brightest is 0" in err  # why it is empty
+
+
+def test_label_image_masks_of_0_and_1_are_read_as_object_and_background(scene, tmp_path, capsys):
+    """Many tools write masks as 0/1 label images: the same model as 0/255 masks, with a note."""
+    import cv2
+
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    for f in sorted((scene / "masks").glob("*.png")):
+        cv2.imwrite(str(masks / f.name), (cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) > 127).astype(np.uint8))
+    args = _known_cameras_args(scene, tmp_path / "scan")
+    args[args.index("--masks") + 1] = str(masks)
+    args.remove("--quiet")
+    assert main(args) == 0
+    assert "label images" in capsys.readouterr().err
+    assert main(_known_cameras_args(scene, tmp_path / "ref")) == 0
+    assert (tmp_path / "scan" / "model.ply").read_bytes() == (tmp_path / "ref" / "model.ply").read_bytes()
 
 
 def test_silhouettes_confined_to_a_small_volume_touch_its_side_and_top(scene):

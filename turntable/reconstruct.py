@@ -94,11 +94,14 @@ def _clear_cache(cache: StageCache) -> None:
         p.unlink(missing_ok=True)
 
 
-def _read_masks(masks_dir: Path, names: list[str], ws: WorkSize) -> np.ndarray:
+def _read_masks(masks_dir: Path, names: list[str], ws: WorkSize,
+                progress: Progress | None = None) -> tuple[np.ndarray, dict[str, str]]:
     """Masks matched to frames by file stem, as large as the photos; any image format; > 127 = object.
 
-    Returned at the work size (V, h, w) bool: each mask is reduced (area average,
-    then > 0.5) as it is read.
+    A mask holding only 0 and one value up to 127 (a label image: 0/1, 0/100)
+    takes that value as the object, with a note. Returned at the work size
+    (V, h, w) bool: each mask is reduced (area average, then > 0.5) as it is
+    read; and for each mask with no object pixel, why (its brightest value).
     """
     from .images import read_image
     from .mask_checks import check_masks
@@ -107,16 +110,30 @@ def _read_masks(masks_dir: Path, names: list[str], ws: WorkSize) -> np.ndarray:
         raise UserError(f"--masks {masks_dir}: not a folder")
     (W, H), (w, h) = ws.full, ws.work
     out = np.zeros((len(names), h, w), bool)
+    empty: dict[str, str] = {}
+    labels: list[str] = []
     for i, (n, p) in enumerate(zip(names, _mask_files(masks_dir, names))):
         if p is None:
             raise UserError(f"--masks {masks_dir}: no mask for frame {n} (expected {Path(n).stem}.png)")
         m = read_image(p)
         if m.shape[:2] != (H, W):
             raise UserError(f"{p}: mask is {m.shape[1]}x{m.shape[0]}, frame {n} is {W}x{H}")
-        obj = np.where(m.max(axis=2) > 127, np.uint8(255), np.uint8(0))
-        out[i] = ws.reduce(obj) > 127
+        g = m.max(axis=2)
+        top = int(g.max())
+        if 0 < top <= 127 and not np.any((g != 0) & (g != top)):  # two values, 0 and a low one: a label image
+            labels.append(n)
+            threshold = 0
+        else:
+            threshold = 127
+        out[i] = ws.reduce(np.where(g > threshold, np.uint8(255), np.uint8(0))) > 127
+        if not out[i].any():
+            empty[n] = (f"{p.name} has no pixel above 127, the brightest is {top}" if top <= threshold else
+                        f"{p.name}: the object pixels vanish at the work size")
+    if labels and progress is not None:
+        progress.note(f"masks: {len(labels)} mask(s) hold only 0 and one value up to 127 (label images, "
+                      f"e.g. {labels[0]}): that value is taken as the object")
     check_masks(out, names, masks_dir)  # inverted, all-white, mostly empty: refused before any work
-    return out
+    return out, empty
 
 
 def _mask_files(masks_dir: Path, names: list[str]) -> list[Path | None]:
@@ -310,9 +327,11 @@ def _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress, vol
         return _Silhouettes(hit["masks"], hit["unknown"], [str(s) for s in hit["status"]])
     with progress.stage("silhouettes") as tick:
         if opts.masks_dir is not None:
-            masks = _undistort_masks(_read_masks(opts.masks_dir, names, ws), intr, ws)
+            masks, empty = _read_masks(opts.masks_dir, names, ws, progress)
+            masks = _undistort_masks(masks, intr, ws)
             unknown = np.zeros_like(masks)
-            status = ["ok" if m.any() else "rejected: the mask is empty" for m in masks]
+            status = ["ok" if m.any() else f"rejected: the mask is empty ({empty.get(n, 'nothing left after undistortion')})"
+                      for n, m in zip(names, masks)]
         else:
             from recon.silhouettes import estimate_silhouettes
 
@@ -525,8 +544,8 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
     del frames, good, used, loaded  # the work BGR copies go; images_rgb holds the pixels from here on
 
     masks_used = None if opts.masks_dir is None else files_digest(_mask_files(opts.masks_dir, names))
-    # "masks undistorted": given masks are undistorted like the photos since this key (older caches recompute)
-    sil_key = stage_key(cam_key, masks_used, "masks undistorted", names, K, seq.intrinsics.dist, Ts, list(ws.work))
+    # "masks undistorted", "label masks": what given masks mean changed with these keys (older caches recompute)
+    sil_key = stage_key(cam_key, masks_used, "masks undistorted", "label masks", names, K, seq.intrinsics.dist, Ts, list(ws.work))
     sil, keep, rejected, conservative, hull, vol, vol_report = _silhouettes_and_hull(
         images_rgb, names, K, Ts, opts, cache, sil_key, progress, ws, seq.intrinsics)
     for n, why in rejected.items():
