@@ -108,18 +108,26 @@ def stack_edges(edges: tuple[EdgePoints, ...]) -> tuple[np.ndarray, np.ndarray, 
 
 
 def _geometry(f, cx, cy, n, t, uv):
-    """Back-projection terms shared by residual and Jacobian."""
+    """Back-projection terms shared by residual and Jacobian.
+
+    ``n``, ``t``: the plane normal and circle centre (camera frame), (3,) for
+    all points or (N, 3), one per point (many views' points at once).
+    """
     q = np.empty((len(uv), 3))
     q[:, 0] = uv[:, 0] - cx
     q[:, 1] = uv[:, 1] - cy
     q[:, 2] = f
-    nq = q @ n
-    s = (n @ t) / nq
+    if n.ndim == 1:
+        nq = q @ n
+        s = (n @ t) / nq
+    else:
+        nq = np.einsum("ij,ij->i", q, n)
+        s = np.einsum("ij,ij->i", n, t) / nq
     D = s[:, None] * q - t
     rho = np.sqrt(np.einsum("ij,ij->i", D, D))
     Dh = D / rho[:, None]
     k = np.einsum("ij,ij->i", Dh, q) / nq
-    grad = s[:, None] * (Dh[:, :2] - k[:, None] * n[:2])  # d rho / d (u, v), mm per px
+    grad = s[:, None] * (Dh[:, :2] - k[:, None] * n[..., :2])  # d rho / d (u, v), mm per px
     g = np.sqrt(np.einsum("ij,ij->i", grad, grad))
     return s, D, rho, Dh, k, grad, g
 

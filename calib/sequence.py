@@ -69,6 +69,8 @@ log = logging.getLogger(__name__)
 __all__ = [
     "calibrate_sequence",
     "AngleReader",
+    "FitStep",
+    "FitReport",
     "marks_angle_reader",
     "rot_y",
     "MAX_STD",
@@ -108,7 +110,8 @@ AngleReader = Callable[[int, np.ndarray, np.ndarray, "np.ndarray | None"], tuple
 
 
 from .sequence_model import _exp_so3  # noqa: F401  (used by tests)
-from .sequence_model import _Fit, _fit, _FrameEdges, _Problem, _project_rotation, _solve, _State, _wrap, _yaw_of, rot_y
+from .sequence_model import (FitReport, FitStep, _Fit, _fit, _FrameEdges, _Problem, _project_rotation, _solve, _State,
+                             _wrap, _yaw_of, rot_y)
 
 
 # --------------------------------------------------------------------------- initialisation
@@ -244,33 +247,37 @@ def _per_frame(observations, spec, intr, pp, reader, failures, max_per_edge, pro
 
 
 # --------------------------------------------------------------------------- the models
-def _fit_turntable(singles, idx, state0, theta0, free_theta, yaw_known, free_intr, free_stroke, noise_px):
+def _fit_turntable(singles, idx, state0, theta0, free_theta, yaw_known, free_intr, free_stroke, noise_px,
+                   report=None):
     frames = [singles[k].edges for k in idx]
     Ts = [singles[k].T for k in idx]
     R_ca, t_ca, d, centre_rms = _init_turntable(Ts, theta0, yaw_known)
     st = replace(state0, R_cam_axis=R_ca, t_cam_axis=t_ca, d_xz=d, theta=theta0.copy(), R=None, t=None)
     mark_R = [singles[k].T[:3, :3] if singles[k].yaw_ok else None for k in idx]
     mark_w = _mark_weights([singles[k].angle_std_deg if singles[k].yaw_ok else np.nan for k in idx], noise_px)
-    fit = _fit(frames, st, "turntable", free_intr, free_stroke, free_theta=free_theta, free_yaw=yaw_known,
-               mark_R=mark_R, mark_w=mark_w)
+    fit = _fit(frames, st, "turntable", free_intr, free_stroke, report=report, free_theta=free_theta,
+               free_yaw=yaw_known, mark_R=mark_R, mark_w=mark_w)
     return fit, centre_rms
 
 
-def _fit_handheld(singles, idx, state0, free_intr, free_stroke):
+def _fit_handheld(singles, idx, state0, free_intr, free_stroke, report=None):
     frames = [singles[k].edges for k in idx]
     st = replace(state0, R=[singles[k].T[:3, :3] for k in idx], t=[singles[k].T[:3, 3] for k in idx],
                  R_cam_axis=None, t_cam_axis=None, d_xz=None, theta=None)
-    return _fit(frames, st, "handheld", free_intr, free_stroke)
+    return _fit(frames, st, "handheld", free_intr, free_stroke, report=report)
 
 
-def _refit(fit: _Fit, free_intr: tuple[str, ...], state: _State | None = None) -> _Fit:
+def _refit(fit: _Fit, free_intr: tuple[str, ...], state: _State | None = None, report: FitReport | None = None,
+           stage: str = "") -> _Fit:
     p = fit.problem
     return _solve(_Problem(p.frames, fit.state if state is None else state, free_intr, p.free_stroke, p.model,
                            free_theta=p.free_theta,
-                           free_yaw=p.free_yaw, mark_R=p.mark_R, mark_w=p.mark_w), robust=False)
+                           free_yaw=p.free_yaw, mark_R=p.mark_R, mark_w=p.mark_w), robust=False, report=report,
+                  stage=stage)
 
 
-def _extend(fit: _Fit, base: tuple[str, ...], extra: tuple[str, ...], notes: dict) -> _Fit:
+def _extend(fit: _Fit, base: tuple[str, ...], extra: tuple[str, ...], notes: dict,
+            report: FitReport | None = None) -> _Fit:
     """Free ``extra`` intrinsics too, keeping those the data constrain (std <= MAX_STD).
 
     The least constrained one (largest std / MAX_STD) is dropped and the rest
@@ -279,7 +286,8 @@ def _extend(fit: _Fit, base: tuple[str, ...], extra: tuple[str, ...], notes: dic
     """
     extra = list(extra)
     while extra:
-        trial = _refit(fit, base + tuple(extra))
+        trial = _refit(fit, base + tuple(extra), report=report,
+                       stage=f"{fit.problem.model} + {', '.join(extra)}")
         ratio = {n: trial.std[n] / MAX_STD[n] if np.isfinite(trial.std[n]) else np.inf for n in extra}
         worst = max(extra, key=lambda n: ratio[n])
         if ratio[worst] <= 1.0:
@@ -290,7 +298,7 @@ def _extend(fit: _Fit, base: tuple[str, ...], extra: tuple[str, ...], notes: dic
     return fit
 
 
-def _add_distortion(fit: _Fit, notes: dict) -> _Fit:
+def _add_distortion(fit: _Fit, notes: dict, report: FitReport | None = None) -> _Fit:
     """Free k1, then k2, each kept only if constrained (``MAX_STD``) and worth it.
 
     Worth it: the RMS edge residual drops by ``MIN_RMS_GAIN``. A small
@@ -302,7 +310,7 @@ def _add_distortion(fit: _Fit, notes: dict) -> _Fit:
     """
     cur = fit.problem.free_intr
     for k in ("k1", "k2"):
-        trial = _extend(fit, cur, (k,), notes)
+        trial = _extend(fit, cur, (k,), notes, report)
         if k not in trial.problem.free_intr:
             if k == "k1":
                 notes["k2"] = "not estimated: k1 is not"
@@ -354,6 +362,7 @@ def calibrate_sequence(
     angle_reader: AngleReader | None = None,
     max_points_per_edge: int | None = None,
     progress: Callable[[int, int], None] | None = None,
+    fit_progress: FitReport | None = None,
 ) -> SequenceCalibration:
     """Shared intrinsics and one pose per frame from a sequence of ring observations.
 
@@ -386,6 +395,10 @@ def calibrate_sequence(
         Edge points kept (evenly) per edge for the joint fit; default
         ``POINT_BUDGET / (4 * n_frames)`` within [100, 1000].
     progress : callable(done, total), optional
+        Told after each frame's single-view calibration.
+    fit_progress : callable(FitStep), optional
+        Told the cost of each Levenberg-Marquardt iteration of each stage of
+        the joint fit (:class:`FitStep`; ``done`` on a stage's last report).
 
     Returns
     -------
@@ -427,11 +440,11 @@ def calibrate_sequence(
         raise CalibrationError(f"no frame could be calibrated ({summary})")
     obs0 = observations[ok[0]]
     return _calibrate_from_singles(singles, reasons, ok, names, (obs0.width, obs0.height), spec, step_deg,
-                                   intrinsics, mode, pp, distortion, angle_reader)
+                                   intrinsics, mode, pp, distortion, angle_reader, fit_progress)
 
 
 def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, intr, mode, pp, distortion,
-                            reader=None):
+                            reader=None, report=None):
     W, H = size
     if intr is not None:
         K0, base = intr.K.copy(), ()
@@ -443,11 +456,11 @@ def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, i
     stroke0 = float(np.median([singles[k].stroke_mm for k in ok])) if free_stroke else 0.0
     state0 = _State(K=K0, dist=np.zeros(5), stroke=stroke0)
     chosen, why, fit, used, checks, centre_rms, rms_pooled = _fit_model(singles, ok, names, step_deg, mode, state0,
-                                                                        base, free_stroke)
+                                                                        base, free_stroke, report)
     if mode == "auto" and chosen == "handheld":
         chosen, why, fit, used, checks, centre_rms, rms_pooled = _retry_turntable(
             singles, reasons, ok, names, step_deg, state0, base, free_stroke,
-            (chosen, why, fit, used, checks, centre_rms, rms_pooled))
+            (chosen, why, fit, used, checks, centre_rms, rms_pooled), report)
         ok = [k for k in ok if singles[k] is not None]
     bad = _bad_frames(fit, used)
     if bad and len(used) - len(bad) >= 2:
@@ -455,7 +468,7 @@ def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, i
             singles[k], reasons[k] = None, msg
         ok = [k for k in ok if k not in bad]
         chosen, _, fit, used, checks, centre_rms, rms_pooled = _fit_model(singles, ok, names, step_deg, chosen,
-                                                                          state0, base, free_stroke)
+                                                                          state0, base, free_stroke, report)
         why += f"; {len(bad)} frame(s) did not fit the shared camera and were dropped"
 
     notes: dict[str, str] = {}
@@ -469,23 +482,23 @@ def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, i
                                         "kept at the image centre")
         else:
             extra += ["cx", "cy"]
-        fit = _extend(fit, base, tuple(extra), notes)
+        fit = _extend(fit, base, tuple(extra), notes, report)
         if distortion == "auto":
-            fit = _add_distortion(fit, notes)
+            fit = _add_distortion(fit, notes, report)
         else:
             notes["distortion"] = "not estimated (distortion='none')"
     else:
         notes["intrinsics"] = "given: edges undistorted with them, K kept"
     if reader is not None and REREAD_MARKS:
         if chosen == "turntable":
-            fit = _reread_marks(fit, used, reader)
+            fit = _reread_marks(fit, used, reader, report)
         else:
             _reread_yaw(fit, used, singles, reader)
     return _result(fit, chosen, why, singles, reasons, ok, used, names, size, intr, notes, checks,
                    rms_pooled, centre_rms)
 
 
-def _retry_turntable(singles, reasons, ok, names, step_deg, state0, base, free_stroke, first):
+def _retry_turntable(singles, reasons, ok, names, step_deg, state0, base, free_stroke, first, report=None):
     """Auto mode chose hand-held: is it one odd frame (upside down, the camera bumped)?
 
     The frames whose camera centre lies far off the circle the others share
@@ -505,7 +518,7 @@ def _retry_turntable(singles, reasons, ok, names, step_deg, state0, base, free_s
     chosen, why = first[0], first[1]
     if odd and len(odd) <= max(1, len(angled) // 10):
         rest = [k for k in ok if k not in odd]
-        trial = _fit_model(singles, rest, names, step_deg, "auto", state0, base, free_stroke)
+        trial = _fit_model(singles, rest, names, step_deg, "auto", state0, base, free_stroke, report)
         if trial[0] == "turntable":
             for k, off in zip(angled, per_frame):
                 if k in odd:
@@ -518,7 +531,7 @@ def _retry_turntable(singles, reasons, ok, names, step_deg, state0, base, free_s
                            if len(angled) >= 3 else ""), *first[2:])
 
 
-def _fit_model(singles, ok, names, step_deg, mode, state0, base, free_stroke):
+def _fit_model(singles, ok, names, step_deg, mode, state0, base, free_stroke, report=None):
     """Fit the turntable model where possible, choose the mode, fit the handheld model if chosen."""
     have_step = step_deg is not None
     angled = [k for k in ok if singles[k].yaw_ok or have_step]
@@ -534,7 +547,7 @@ def _fit_model(singles, ok, names, step_deg, mode, state0, base, free_stroke):
         theta0 = np.array([theta_all[k] for k in angled])
         try:
             fit_tt, centre_rms = _fit_turntable(singles, angled, state0, theta0, free_theta, yaw_known, base,
-                                                free_stroke, rms_pooled)
+                                                free_stroke, rms_pooled, report)
         except (np.linalg.LinAlgError, ValueError) as exc:
             log.warning("turntable fit failed: %s", exc)
     chosen, why = _choose_mode(mode, singles, ok, angled, fit_tt, centre_rms, distance)
@@ -542,7 +555,7 @@ def _fit_model(singles, ok, names, step_deg, mode, state0, base, free_stroke):
         if fit_tt is None:
             raise CalibrationError("turntable model could not be fitted")
         return chosen, why, fit_tt, angled, checks, centre_rms, rms_pooled
-    fit = _fit_handheld(singles, ok, state0, base, free_stroke)
+    fit = _fit_handheld(singles, ok, state0, base, free_stroke, report)
     return chosen, why, fit, ok, checks, centre_rms, rms_pooled
 
 
@@ -555,7 +568,7 @@ def _bad_frames(fit: _Fit, used: list[int]) -> dict[int, str]:
             for i in np.flatnonzero(r > lim)}
 
 
-def _reread_marks(fit: _Fit, used: list[int], reader: AngleReader) -> _Fit:
+def _reread_marks(fit: _Fit, used: list[int], reader: AngleReader, report: FitReport | None = None) -> _Fit:
     """Read the marks again through the joint model's camera and poses, and refit.
 
     The first reading went through each frame's single-view ``f`` and normal;
@@ -575,7 +588,7 @@ def _reread_marks(fit: _Fit, used: list[int], reader: AngleReader) -> _Fit:
         w[i] = _mark_weights([std], fit.rms_px)[0]
     prob = _Problem(p.frames, st, p.free_intr, p.free_stroke, p.model, free_theta=p.free_theta,
                     free_yaw=p.free_yaw, mark_R=mark_R, mark_w=w)
-    return _solve(prob, robust=False)
+    return _solve(prob, robust=False, report=report, stage="turntable, marks read again")
 
 
 def _reread_yaw(fit: _Fit, used: list[int], singles, reader: AngleReader) -> None:

@@ -11,26 +11,37 @@ pixels, ``k1, k2``), the stroke width ``w`` and either
 
 Residuals: each edge point's distance (pixels) from its projected edge circle,
 :func:`calib.refine.edge_residuals` on points undistorted with the current
-``K, dist`` (:func:`calib.distortion.undistort_px`); for a turntable, one row per
+``K, dist`` (:func:`calib.distortion.undistort_px`), all frames' points in one
+vectorised pass (each point with its frame's plane); for a turntable, one row per
 frame whose marks were read: the yaw between the model's pose and the marks'
 pose, scaled to pixels by ``noise_px / std``. Solved by Levenberg-Marquardt on
-the normal equations, built block by block (a frame's rows touch the global
-parameters and its own).
+the normal equations, which are block sparse: a frame's rows (its edge points
+and its mark row) touch the ``g`` global parameters and its own ``l`` (0, 1 or
+5) only, so with ``J_k = [G_k | L_k]``::
+
+    [ U    W ] [dx_g]   [b_g]      U = sum_k G_k^T G_k   (g, g)
+    [ W^T  V ] [dx_l] = [b_l]      W_k = G_k^T L_k (g, l),  V = diag(V_k),  V_k = L_k^T L_k (l, l)
+
+is solved through the Schur complement over the per-frame blocks,
+``(U - sum_k W_k V_k^-1 W_k^T) dx_g = b_g - sum_k W_k V_k^-1 b_k``, then
+``dx_k = V_k^-1 (b_k - W_k^T dx_g)``: time and memory linear in the frames
+(a dense ``J`` and ``J^T J`` grow with their square, the solve with their cube).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
 from .camera import make_T
 from .distortion import undistort_px
-from .refine import edge_residuals
-from .types import CalibrationError, EdgePoints, TargetObservation
+from .refine import _geometry
+from .types import CalibrationError, TargetObservation
 
-__all__ = ["rot_y"]
+__all__ = ["rot_y", "FitStep"]
 
 
 # --------------------------------------------------------------------------- small geometry
@@ -106,18 +117,6 @@ class _FrameEdges:
         return any(side != 0 for _, _, side in self.groups)
 
 
-def _edge_residuals(K: np.ndarray, dist: np.ndarray, T_cam_table: np.ndarray, stroke_mm: float,
-                    fe: _FrameEdges) -> np.ndarray:
-    """Distances (N,) px of ``fe``'s undistorted points from their projected edge circles.
-
-    The single-view residual of :func:`calib.refine.edge_residuals`, on points
-    undistorted with the current ``K, dist``.
-    """
-    uv = undistort_px(fe.uv_px, K, dist) if np.any(dist) else fe.uv_px
-    edges = tuple(EdgePoints(uv[sl], r, side) for sl, r, side in fe.groups)
-    return edge_residuals(K, T_cam_table, stroke_mm, edges)
-
-
 # --------------------------------------------------------------------------- the problem
 _INTR_NAMES = ("f", "cx", "cy", "k1", "k2")
 
@@ -153,7 +152,9 @@ class _Problem:
 
     Global parameters (free intrinsics, stroke, turntable geometry) touch every
     frame; local ones (theta_k, or a handheld frame's 5) touch one frame, so
-    the Jacobian costs (n_global + n_local_per_frame) residual evaluations.
+    the Jacobian costs ``n_global + max(n_local) + 1`` evaluations of all rows.
+    Parameters are ordered globals first, then each frame's locals in frame
+    order (frame ``k``'s from ``local_start[k]``).
     """
 
     def __init__(self, frames: list[_FrameEdges], state: _State, free_intr: tuple[str, ...],
@@ -178,6 +179,16 @@ class _Problem:
         self.row_start = np.concatenate([[0], np.cumsum(self.n_edge)]).astype(int)
         self.has_mark = np.array([m is not None and w > 0 for m, w in zip(self.mark_R, self.mark_w)])
         self.n_rows = int(self.row_start[-1] + self.has_mark.sum())
+        self.mark_row = np.full(len(frames), -1)  # each frame's mark row, -1 where it has none
+        self.mark_row[self.has_mark] = self.row_start[-1] + np.arange(self.has_mark.sum())
+        # every frame's edge points stacked: raw pixels, ring radius, side, frame of each row
+        self.uv_px = np.concatenate([f.uv_px for f in frames])
+        self.ring_mm = np.concatenate([np.full(sl.stop - sl.start, r) for f in frames for sl, r, _ in f.groups])
+        self.side = np.concatenate([np.full(sl.stop - sl.start, float(sd)) for f in frames for sl, _, sd in f.groups])
+        self.row_frame = np.repeat(np.arange(len(frames)), self.n_edge)
+        self.mark_frames = np.flatnonzero(self.has_mark)
+        self.mark_R_stack = np.array([self.mark_R[k] for k in self.mark_frames]).reshape(-1, 3, 3)
+        self._undistorted = (None, None)  # (key, uv): the last K, dist's undistorted points
 
     # -- packing ------------------------------------------------------------
     def unpack(self, x: np.ndarray) -> _State:
@@ -220,28 +231,54 @@ class _Problem:
                 st.t.append(s0.t[k] + x[j + 2:j + 5])
         return st
 
+    def _poses(self, st: _State) -> np.ndarray:
+        """Every frame's ``T_cam_table`` (n, 4, 4) of a full state."""
+        if st.R is not None:
+            return np.array(st.poses()).reshape(-1, 4, 4)
+        c, s = np.cos(st.theta), np.sin(st.theta)
+        Ry = np.zeros((len(st.theta), 3, 3))
+        Ry[:, 0, 0], Ry[:, 0, 2], Ry[:, 1, 1], Ry[:, 2, 0], Ry[:, 2, 2] = c, s, 1.0, -s, c
+        Ts = np.zeros((len(st.theta), 4, 4))
+        Ts[:, :3, :3] = np.einsum("ij,kjl->kil", st.R_cam_axis, Ry, optimize=False)
+        d = np.array([st.d_xz[0], 0.0, st.d_xz[1]])
+        Ts[:, :3, 3] = np.einsum("kij,j->ki", Ts[:, :3, :3], d, optimize=False) + st.t_cam_axis
+        Ts[:, 3, 3] = 1.0
+        return Ts
+
+    def _undistort(self, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+        if not np.any(dist):
+            return self.uv_px
+        key = (K.tobytes(), dist.tobytes())
+        if self._undistorted[0] != key:
+            self._undistorted = (key, undistort_px(self.uv_px, K, dist))
+        return self._undistorted[1]
+
     # -- residuals ----------------------------------------------------------
     def _mark_residual(self, k: int, R_model: np.ndarray) -> float:
         return self.mark_w[k] * _yaw_of(R_model.T @ self.mark_R[k])
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
+        """All rows (n_rows,): every frame's edge residuals (px) in frame order, then the mark rows."""
         st = self.unpack(x)
-        Ts = st.poses()
+        Ts = self._poses(st)
+        uv = self._undistort(st.K, st.dist)
+        n_e = int(self.row_start[-1])
         out = np.empty(self.n_rows)
-        for k, fe in enumerate(self.frames):
-            out[self.row_start[k]:self.row_start[k + 1]] = _edge_residuals(st.K, st.dist, Ts[k], st.stroke, fe)
-        m = self.row_start[-1]
-        for k in np.flatnonzero(self.has_mark):
-            out[m] = self._mark_residual(k, Ts[k][:3, :3])
-            m += 1
+        n, t = Ts[:, :3, 1][self.row_frame], Ts[:, :3, 3][self.row_frame]  # each row's plane normal, centre
+        _, _, rho, _, _, _, g = _geometry(st.K[0, 0], st.K[0, 2], st.K[1, 2], n, t, uv)
+        out[:n_e] = (rho - (self.ring_mm + 0.5 * self.side * st.stroke)) / g
+        mk = self.mark_frames
+        M = np.einsum("kji,kjl->kil", Ts[mk, :3, :3], self.mark_R_stack, optimize=False)  # R_model^T R_marks
+        out[n_e:] = self.mark_w[mk] * np.arctan2(M[:, 0, 2] - M[:, 2, 0], M[:, 0, 0] + M[:, 2, 2])
         return out
 
-    def _frame_rows(self, st: _State, T: np.ndarray, k: int) -> tuple[np.ndarray, float | None]:
-        r = _edge_residuals(st.K, st.dist, T, st.stroke, self.frames[k])
-        return r, (self._mark_residual(k, T[:3, :3]) if self.has_mark[k] else None)
+    def jacobian(self, x: np.ndarray) -> "_BlockJacobian":
+        """Forward differences, block by block.
 
-    def jacobian(self, x: np.ndarray) -> np.ndarray:
-        """Forward differences, block by block (a local parameter re-evaluates its frame only).
+        A frame's rows depend on the global parameters and its own only, so
+        the ``c``-th local parameter of every frame is stepped at once and
+        one evaluation gives that column of every frame's block: the Jacobian
+        costs ``n_global + max(n_local) + 1`` evaluations of all rows.
 
         Not the analytic ``calib.refine.edge_linearisation``: it freezes the
         residual's weight ``1 / |grad rho|``, and Gauss-Newton then converges
@@ -249,51 +286,133 @@ class _Problem:
         with k1, k2 and the principal point free that moved the principal point
         by ~15 px and f by ~1 % at 0.15 px noise (exact differences: 0.6 px, 0.09 %).
         """
-        J = np.zeros((self.n_rows, self.n_params))
+        n_l = int(self.n_local.max(initial=0))
+        J = _BlockJacobian(glob=np.zeros((self.n_rows, self.n_global)), local=np.zeros((self.n_rows, n_l)))
         r0 = self.residuals(x)
-        mark_row = np.full(len(self.frames), -1)
-        mark_row[self.has_mark] = self.row_start[-1] + np.arange(self.has_mark.sum())
         for j in range(self.n_global):
             h = 1e-6 * max(1.0, abs(x[j]))
             xp = x.copy()
             xp[j] += h
-            J[:, j] = (self.residuals(xp) - r0) / h
-        for k in range(len(self.frames)):
-            rows = slice(self.row_start[k], self.row_start[k + 1])
-            for c in range(self.n_local[k]):
-                j = self.local_start[k] + c
-                h = 1e-6 * max(1.0, abs(x[j]))
-                xp = x.copy()
-                xp[j] += h
-                st = self.unpack(xp)
-                T = self._pose_k(st, k)
-                r, m = self._frame_rows(st, T, k)
-                J[rows, j] = (r - r0[rows]) / h
-                if m is not None:
-                    J[mark_row[k], j] = (m - r0[mark_row[k]]) / h
+            J.glob[:, j] = (self.residuals(xp) - r0) / h
+        for c in range(n_l):
+            frames = np.flatnonzero(self.n_local > c)
+            j = self.local_start[frames] + c
+            h = np.zeros(len(self.frames))
+            h[frames] = 1e-6 * np.maximum(1.0, np.abs(x[j]))
+            xp = x.copy()
+            xp[j] += h[frames]
+            r = self.residuals(xp)
+            rows = np.concatenate([np.flatnonzero(h[self.row_frame] > 0),
+                                   self.mark_row[frames[self.has_mark[frames]]]]).astype(int)
+            J.local[rows, c] = (r[rows] - r0[rows]) / h[np.concatenate([self.row_frame, self.mark_frames])[rows]]
         return J
-
-    @staticmethod
-    def _pose_k(st: _State, k: int) -> np.ndarray:
-        if st.R is not None:
-            return make_T(st.R[k], st.t[k])
-        R = st.R_cam_axis @ rot_y(st.theta[k])
-        return make_T(R, R @ np.array([st.d_xz[0], 0.0, st.d_xz[1]]) + st.t_cam_axis)
-
-    def blocks(self) -> list[tuple[slice, np.ndarray]]:
-        """(rows, columns) of the Jacobian's non-zero blocks: one per frame, one for the mark rows."""
-        out = []
-        g = np.arange(self.n_global)
-        for k in range(len(self.frames)):
-            loc = self.local_start[k] + np.arange(self.n_local[k])
-            out.append((slice(self.row_start[k], self.row_start[k + 1]), np.concatenate([g, loc]).astype(int)))
-        if self.has_mark.any():
-            out.append((slice(self.row_start[-1], self.n_rows), np.arange(self.n_params)))
-        return out
 
     def edge_rms_per_frame(self, r: np.ndarray) -> np.ndarray:
         return np.array([np.sqrt(np.mean(r[self.row_start[k]:self.row_start[k + 1]] ** 2))
                          for k in range(len(self.frames))])
+
+
+@dataclass(frozen=True)
+class _BlockJacobian:
+    """The Jacobian (n_rows, n_params) in its block-sparse form, memory linear in the frames.
+
+    ``glob`` (n_rows, n_global): every row's derivatives by the global
+    parameters; ``local`` (n_rows, n_l), ``n_l = max(n_local)``: each row's by
+    its own frame's parameters (column ``c`` is parameter ``local_start[k] + c``
+    for a row of frame ``k``; zero for ``c >= n_local[k]``). Each other entry of
+    the dense Jacobian is zero.
+    """
+
+    glob: np.ndarray
+    local: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Normal:
+    """The normal equations ``J^T J dx = J^T r`` in blocks (see the module docstring).
+
+    ``U`` (g, g), ``b_g`` (g,); per frame ``W`` (n, g, l), ``V`` (n, l, l),
+    ``b_l`` (n, l), padded with zeros past each frame's ``n_local`` (``pad``
+    (n, l) bool marks the padding).
+    """
+
+    U: np.ndarray
+    b_g: np.ndarray
+    W: np.ndarray
+    V: np.ndarray
+    b_l: np.ndarray
+    pad: np.ndarray
+
+    def diagonal(self) -> tuple[np.ndarray, np.ndarray]:
+        """``diag(J^T J)``: the global part (g,) and the local part (n, l), 0 on the padding."""
+        return np.diagonal(self.U).copy(), np.diagonal(self.V, axis1=1, axis2=2).copy()
+
+
+def _normal_equations(problem: "_Problem", J: _BlockJacobian, w: np.ndarray, r: np.ndarray) -> _Normal:
+    """``(Jw)^T Jw`` and ``(Jw)^T (w r)`` in blocks, for row weights ``w`` (n_rows,) and residuals ``r``.
+
+    Per-frame products of a few hundred rows by a few columns (``einsum``
+    without BLAS: multithreaded BLAS oversubscribes busy machines badly).
+    """
+    G, L, rw = J.glob * w[:, None], J.local * w[:, None], w * r
+    n, g, l = len(problem.frames), problem.n_global, L.shape[1]
+    U = np.einsum("ij,ik->jk", G, G, optimize=False)
+    b_g = np.einsum("ij,i->j", G, rw, optimize=False)
+    W, V, b_l = np.zeros((n, g, l)), np.zeros((n, l, l)), np.zeros((n, l))
+    if l:
+        for k in range(n):
+            rows = slice(problem.row_start[k], problem.row_start[k + 1])
+            W[k] = np.einsum("ij,ik->jk", G[rows], L[rows], optimize=False)
+            V[k] = np.einsum("ij,ik->jk", L[rows], L[rows], optimize=False)
+            b_l[k] = np.einsum("ij,i->j", L[rows], rw[rows], optimize=False)
+        mk = np.flatnonzero(problem.has_mark)  # one mark row per such frame
+        m = problem.mark_row[mk]
+        W[mk] += G[m][:, :, None] * L[m][:, None, :]
+        V[mk] += L[m][:, :, None] * L[m][:, None, :]
+        b_l[mk] += L[m] * rw[m][:, None]
+    pad = np.arange(l)[None, :] >= problem.n_local[:, None]
+    return _Normal(U=U, b_g=b_g, W=W, V=V, b_l=b_l, pad=pad)
+
+
+def _schur_solve(N: _Normal, d_g: np.ndarray, d_l: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Solve ``(J^T J + diag(d)) x = b`` by the Schur complement over the frames' blocks.
+
+    ``d_g`` (g,) and ``d_l`` (n, l) are added to the diagonal (the padding's
+    diagonal is set to 1, its ``b`` is 0, so its ``x`` is 0). Returns ``(x_g
+    (g,), x_l (n, l))``; raises ``LinAlgError`` when a block or the reduced
+    system is singular.
+    """
+    l = N.V.shape[1]
+    Vd = N.V.copy()
+    i = np.arange(l)
+    Vd[:, i, i] += np.where(N.pad, 1.0, d_l)
+    Vinv = np.linalg.inv(Vd) if l else Vd
+    WVinv = np.einsum("kgl,klm->kgm", N.W, Vinv, optimize=False)  # (n, g, l)
+    S = N.U + np.diag(d_g) - np.einsum("kgl,khl->gh", WVinv, N.W, optimize=False)
+    x_g = np.linalg.solve(S, N.b_g - np.einsum("kgl,kl->g", WVinv, N.b_l, optimize=False))
+    x_l = np.einsum("klm,km->kl", Vinv, N.b_l - np.einsum("kgl,g->kl", N.W, x_g, optimize=False), optimize=False)
+    return x_g, x_l
+
+
+@dataclass(frozen=True)
+class FitStep:
+    """One report of the joint fit, for progress displays (:func:`calib.sequence.calibrate_sequence`).
+
+    ``stage``: which least-squares problem (e.g. "turntable, robust"); ``iteration``:
+    Levenberg-Marquardt steps taken (0: the starting point); ``cost``: the
+    sum of squared (soft-L1 when robust) residuals, px^2; ``rms_px``:
+    ``sqrt(cost / rows)``; ``done``: the stage's last report.
+    """
+
+    stage: str
+    iteration: int
+    cost: float
+    rms_px: float
+    done: bool = False
+
+
+#: ``report(step)``: called at each Levenberg-Marquardt iteration of each stage of the joint fit.
+FitReport = Callable[[FitStep], None]
 
 
 @dataclass(frozen=True)
@@ -306,28 +425,20 @@ class _Fit:
     problem: _Problem
 
 
-def _gram(Jw: np.ndarray, rw: np.ndarray, blocks) -> tuple[np.ndarray, np.ndarray]:
-    """``Jw^T Jw`` and ``Jw^T rw`` summed over row blocks touching only their columns.
-
-    The Jacobian is block sparse (a frame's rows touch the global parameters and
-    its own); small per-block products also keep clear of multithreaded BLAS,
-    which oversubscribes busy machines badly.
-    """
-    n = Jw.shape[1]
-    A, g = np.zeros((n, n)), np.zeros(n)
-    for rows, cols in blocks:
-        B = Jw[rows][:, cols]
-        A[np.ix_(cols, cols)] += np.einsum("ij,ik->jk", B, B, optimize=False)
-        g[cols] += np.einsum("ij,i->j", B, rw[rows], optimize=False)
-    return A, g
+def _lm_step(problem: _Problem, N: _Normal, lam: float) -> np.ndarray:
+    """``-(A + lam diag(D))^-1 g`` for the blocked ``A = J^T J``, ``g = J^T r``; D = diag(A) floored."""
+    dg, dl = N.diagonal()
+    floor = 1e-12 * max(float(np.max(dg, initial=0.0)), float(np.max(dl, initial=0.0)), 1e-300)
+    x_g, x_l = _schur_solve(N, lam * np.maximum(dg, floor), lam * np.maximum(dl, floor))
+    return -np.concatenate([x_g, x_l[~N.pad]])
 
 
-def _levenberg_marquardt(fun, jac, x0: np.ndarray, robust_px: float | None, blocks, max_iter: int = 40) -> np.ndarray:
-    """Minimise ``sum rho(r_i^2)`` by Levenberg-Marquardt on the normal equations.
+def _levenberg_marquardt(problem: _Problem, x0: np.ndarray, robust_px: float | None, max_iter: int = 40,
+                         report: FitReport | None = None, stage: str = "") -> np.ndarray:
+    """Minimise ``sum rho(r_i^2)`` by Levenberg-Marquardt on the blocked normal equations.
 
-    ``robust_px``: soft-L1 loss of that scale (iteratively reweighted), else L2.
-    The parameters are few (tens) and the rows many, so ``J^T J`` is solved
-    directly instead of factoring ``J``.
+    ``robust_px``: soft-L1 loss of that scale (iteratively reweighted), else
+    L2. ``report``: told the cost at the start and after every iteration.
     """
 
     def cost_of(r):
@@ -336,23 +447,28 @@ def _levenberg_marquardt(fun, jac, x0: np.ndarray, robust_px: float | None, bloc
         z = (r / robust_px) ** 2
         return float(np.sum(2.0 * (np.sqrt(1.0 + z) - 1.0))) * robust_px**2
 
+    def tell(it, c, done=False):
+        if report is not None:
+            report(FitStep(stage, it, c, math.sqrt(c / max(problem.n_rows, 1)), done))
+
     x = x0.copy()
-    r = fun(x)
+    r = problem.residuals(x)
     cost = cost_of(r)
     lam = 1e-3
+    tell(0, cost)
+    steps = 0
     for _ in range(max_iter):
-        J = jac(x)
+        J = problem.jacobian(x)
         w = np.ones_like(r) if robust_px is None else 1.0 / np.sqrt(np.sqrt(1.0 + (r / robust_px) ** 2))
-        A, g = _gram(J * w[:, None], w * r, blocks)
-        D = np.maximum(np.diag(A), 1e-12 * max(np.max(np.diag(A)), 1e-300))
+        N = _normal_equations(problem, J, w, r)
         improved = False
         for _ in range(12):
             try:
-                dx = -np.linalg.solve(A + lam * np.diag(D), g)
+                dx = _lm_step(problem, N, lam)
             except np.linalg.LinAlgError:
                 lam *= 10.0
                 continue
-            r_new = fun(x + dx)
+            r_new = problem.residuals(x + dx)
             c_new = cost_of(r_new)
             if c_new < cost:
                 improved = True
@@ -363,20 +479,24 @@ def _levenberg_marquardt(fun, jac, x0: np.ndarray, robust_px: float | None, bloc
         rel = (cost - c_new) / max(cost, 1e-300)
         x, r, cost = x + dx, r_new, c_new
         lam = max(lam / 10.0, 1e-9)
+        steps += 1
+        tell(steps, cost)
         if rel < 1e-9:
             break
+    tell(steps, cost, done=True)
     return x
 
 
-def _solve(problem: _Problem, robust: bool) -> _Fit:
+def _solve(problem: _Problem, robust: bool, report: FitReport | None = None, stage: str = "") -> _Fit:
     x0 = np.zeros(problem.n_params)
-    x = _levenberg_marquardt(problem.residuals, problem.jacobian, x0, 1.0 if robust else None, problem.blocks())
+    label = f"{stage}, robust" if robust and stage else stage
+    x = _levenberg_marquardt(problem, x0, 1.0 if robust else None, report=report, stage=label)
     r = problem.residuals(x)
     J = problem.jacobian(x)
     n_e = int(problem.row_start[-1])
     dof = max(len(r) - problem.n_params, 1)
     s2 = float(r @ r) / dof
-    std = _param_std(J, s2)
+    std = _global_std(problem, J, s2)
     names = list(problem.free_intr) + (["stroke"] if problem.free_stroke else [])
     st = problem.unpack(x)
     out = {}
@@ -389,8 +509,58 @@ def _solve(problem: _Problem, robust: bool) -> _Fit:
                 rms_per_frame=problem.edge_rms_per_frame(r), residuals=r, problem=problem)
 
 
+#: below this eigenvalue of a (column-normalised) block, the covariance is taken from the whole matrix
+_SCHUR_MIN_EIG = 1e-10
+
+
+def _global_std(problem: _Problem, J: _BlockJacobian, s2: float) -> np.ndarray:
+    """1-sigma (n_global,) of the global parameters from ``s2 (J^T J)^-1``; inf where singular.
+
+    On the column-normalised ``M = Js^T Js`` (unit diagonal): the global block
+    of ``M^-1`` is the inverse of its Schur complement over the frames'
+    blocks. Where a block or that complement is near singular (an
+    unconstrained parameter) the whole ``M`` is assembled and its
+    eigenvalues clamped, as :func:`_param_std` does (memory ``n_params^2``).
+    """
+    N = _normal_equations(problem, J, np.ones(problem.n_rows), np.zeros(problem.n_rows))
+    dg, dl = N.diagonal()
+    ng, nl = np.sqrt(dg), np.sqrt(dl)
+    ng[ng == 0] = 1.0
+    nl[nl == 0] = 1.0
+    U = N.U / np.outer(ng, ng)
+    W = N.W / (ng[None, :, None] * nl[:, None, :])
+    V = N.V / (nl[:, :, None] * nl[:, None, :])
+    l = V.shape[1]
+    V[:, np.arange(l), np.arange(l)] += N.pad  # padding: identity, no coupling
+    try:
+        ok = l == 0 or np.linalg.eigvalsh(V).min() > _SCHUR_MIN_EIG
+        if ok:
+            WVinv = np.einsum("kgl,klm->kgm", W, np.linalg.inv(V) if l else V, optimize=False)
+            S = U - np.einsum("kgl,khl->gh", WVinv, W, optimize=False)
+            e, Q = np.linalg.eigh(S)
+            ok = e[0] > _SCHUR_MIN_EIG
+    except np.linalg.LinAlgError:
+        ok = False
+    if not ok:
+        return _param_std(_dense(problem, J), s2)[:problem.n_global]
+    cov = (Q / e) @ Q.T
+    return np.sqrt(np.maximum(np.diag(cov), 0.0) * s2) / ng
+
+
+def _dense(problem: _Problem, J: _BlockJacobian) -> np.ndarray:
+    """The dense Jacobian (n_rows, n_params) of a blocked one (memory ``n_rows * n_params``: fallback only)."""
+    D = np.zeros((problem.n_rows, problem.n_params))
+    D[:, :problem.n_global] = J.glob
+    for k in range(len(problem.frames)):
+        cols = slice(problem.local_start[k], problem.local_start[k] + problem.n_local[k])
+        for rows in (slice(problem.row_start[k], problem.row_start[k + 1]),
+                     slice(problem.mark_row[k], problem.mark_row[k] + 1) if problem.has_mark[k] else slice(0, 0)):
+            D[rows, cols] = J.local[rows, :problem.n_local[k]]
+    return D
+
+
 def _param_std(J: np.ndarray, s2: float) -> np.ndarray:
-    """1-sigma of each parameter from ``s2 (J^T J)^-1``; inf where singular."""
+    """1-sigma of each parameter from ``s2 (J^T J)^-1`` for a dense ``J``; inf where singular."""
     norms = np.linalg.norm(J, axis=0)
     norms[norms == 0] = 1.0
     Js = J / norms
@@ -406,9 +576,10 @@ def _param_std(J: np.ndarray, s2: float) -> np.ndarray:
 
 
 def _fit(frames: list[_FrameEdges], state: _State, model: str, free_intr: tuple[str, ...], free_stroke: bool,
-         **kw) -> _Fit:
+         report: FitReport | None = None, **kw) -> _Fit:
     """Robust fit (soft L1, 1 px), drop edge points beyond 5 robust sigmas, final least squares."""
-    fit = _solve(_Problem(frames, state, free_intr, free_stroke, model, **kw), robust=True)
+    fit = _solve(_Problem(frames, state, free_intr, free_stroke, model, **kw), robust=True, report=report,
+                 stage=model)
     r = fit.residuals
     n_e = int(fit.problem.row_start[-1])
     sigma = 1.4826 * float(np.median(np.abs(r[:n_e])))
@@ -418,4 +589,5 @@ def _fit(frames: list[_FrameEdges], state: _State, model: str, free_intr: tuple[
         rk = r[fit.problem.row_start[k]:fit.problem.row_start[k + 1]]
         keep = np.abs(rk) <= thr
         kept.append(fe if keep.all() else fe.select(keep))
-    return _solve(_Problem(kept, fit.state, free_intr, free_stroke, model, **kw), robust=False)
+    return _solve(_Problem(kept, fit.state, free_intr, free_stroke, model, **kw), robust=False, report=report,
+                  stage=model)

@@ -360,3 +360,67 @@ def test_one_upside_down_frame_is_left_out_not_a_switch_to_handheld(monkeypatch)
     assert [k for k, f in enumerate(seq.frames) if not f.ok] == [5]
     assert abs(seq.intrinsics.focal_px / K[0, 0] - 1) < 1e-3
     assert "off the turntable circle left out" in seq.meta["mode_reason"]
+
+
+# --------------------------------------------------------------------------- the joint fit's linear algebra
+def _problems(rng, n):
+    """A turntable problem (marks on all frames but one, the first angle fixed) and a handheld one, n frames,
+    10 edge points per edge, started off the truth; and a parameter vector off zero."""
+    from calib.sequence_model import _FrameEdges, _Problem, _State
+
+    K, theta, Ts = turntable_truth(rng, n=n, step=360.0 / n)
+    frames = [_FrameEdges.from_observation(synth_observation(K, np.zeros(5), T, rng), 10) for T in Ts]
+    d = np.array([2.0, 0.0, -1.5])
+    T_ca = Ts[0] @ np.linalg.inv(make_T(cs.rot_y(theta[0]), cs.rot_y(theta[0]) @ d))
+    st = cs._State(K=K * [[1.01], [1.01], [1]], dist=np.array([-0.01, 0, 0, 0, 0.0]), stroke=3.0,
+                   R_cam_axis=T_ca[:3, :3], t_cam_axis=T_ca[:3, 3] + 1.0, d_xz=np.zeros(2), theta=theta + 0.01)
+    free = np.arange(n) > 0
+    mark_R = [None] + [T[:3, :3] for T in Ts[1:]]
+    tt = _Problem(frames, st, ("f", "k1"), True, "turntable", free_theta=free, mark_R=mark_R,
+                  mark_w=np.full(n, 50.0))
+    sh = _State(K=st.K, dist=st.dist, stroke=3.0, R=[T[:3, :3] for T in Ts], t=[T[:3, 3] + 1.0 for T in Ts])
+    hh = _Problem(frames, sh, ("f", "cx", "cy", "k1"), True, "handheld")
+    return [(p, rng.normal(0, 1e-3, p.n_params)) for p in (tt, hh)]
+
+
+def test_joint_fit_jacobian_is_blocked_and_costs_the_same_evaluations_for_any_number_of_frames(monkeypatch):
+    """The joint fit's cost is linear in the frames: its Jacobian holds the global columns and each
+    frame's own (at most 5) for every row -- never a dense (rows, parameters) array whose width grows
+    with the frames -- and is built from a fixed number of residual evaluations of all rows (every
+    frame's c-th parameter is stepped at once), not one per frame's parameter."""
+    from calib.sequence_model import _Problem
+
+    calls = []
+    evaluate = _Problem.residuals
+    monkeypatch.setattr(_Problem, "residuals", lambda self, x: calls.append(1) or evaluate(self, x))
+    per_jacobian, expected = {}, {}
+    for n in (4, 12):
+        for p, x in _problems(np.random.default_rng(20), n):
+            calls.clear()
+            J = p.jacobian(x)
+            assert J.glob.shape == (p.n_rows, p.n_global)
+            assert J.local.shape == (p.n_rows, int(p.n_local.max()))
+            per_jacobian.setdefault(p.model, set()).add(len(calls))
+            expected[p.model] = {p.n_global + int(p.n_local.max()) + 1}  # globals + local columns + r0
+    assert per_jacobian == expected
+
+
+def test_blocked_normal_equations_match_the_dense_solve():
+    """The Schur-complement step and covariance equal the dense ``(J^T J + lam D)^-1 J^T r`` and ``(J^T J)^-1``."""
+    from calib.sequence_model import _dense, _global_std, _lm_step, _normal_equations, _param_std
+
+    REL_TOL = 1e-8  # the steps
+    STD_REL_TOL = 1e-6  # 1 sigma: both computations lose ~cond(M) eps, cond ~ 4e9 here (10 points per edge)
+    rng = np.random.default_rng(21)
+    for p, x in _problems(rng, 7):
+        J, r = p.jacobian(x), p.residuals(x)
+        w = rng.uniform(0.5, 1.0, p.n_rows)
+        N = _normal_equations(p, J, w, r)
+        Jd = _dense(p, J) * w[:, None]
+        A, g = Jd.T @ Jd, Jd.T @ (w * r)
+        for lam in (1e-6, 1e-2, 10.0):
+            D = np.maximum(np.diag(A), 1e-12 * np.diag(A).max())
+            dx = -np.linalg.solve(A + lam * np.diag(D), g)
+            assert np.linalg.norm(_lm_step(p, N, lam) - dx) < REL_TOL * np.linalg.norm(dx), (p.model, lam)
+        std = _global_std(p, J, 0.02)
+        np.testing.assert_allclose(std, _param_std(_dense(p, J), 0.02)[:p.n_global], rtol=STD_REL_TOL)

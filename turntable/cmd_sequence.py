@@ -23,6 +23,7 @@ from .cmd_calibrate import add_target_arguments, target_from_args
 from .errors import UserError
 from .frames import VIDEO_SUFFIXES, iter_frames, select_indices
 from .images import exif_focal_report, focal_warning, list_images, read_image
+from .progress import Progress, fit_reporter
 
 __all__ = ["add_arguments", "run", "calibrate_folder", "summary_table"]
 
@@ -73,7 +74,8 @@ def _progress_printer(stream, label: str):
 
 
 def calibrate_folder(paths, spec: TargetSpec, *, step_deg=None, intrinsics=None, mode="auto",
-                     principal_point_px=None, distortion="auto", progress=None) -> SequenceCalibration:
+                     principal_point_px=None, distortion="auto", progress=None,
+                     fit_progress=None) -> SequenceCalibration:
     """Read ``paths`` (unreadable ones are reported as skipped frames) and calibrate them.
 
     One photo at a time: its rings are found at full resolution, and only a
@@ -99,16 +101,20 @@ def calibrate_folder(paths, spec: TargetSpec, *, step_deg=None, intrinsics=None,
     if not paths:
         raise UserError("no frames to calibrate")
     return calibrate_stream(frames(), len(paths), spec, step_deg=step_deg, intrinsics=intrinsics, mode=mode,
-                            principal_point_px=principal_point_px, distortion=distortion, progress=progress)
+                            principal_point_px=principal_point_px, distortion=distortion, progress=progress,
+                            fit_progress=fit_progress)
 
 
 def calibrate_stream(frames, n: int, spec: TargetSpec, *, step_deg=None, intrinsics=None, mode="auto",
-                     principal_point_px=None, distortion="auto", progress=None) -> SequenceCalibration:
+                     principal_point_px=None, distortion="auto", progress=None,
+                     fit_progress=None) -> SequenceCalibration:
     """Calibrate frames ``(name, BGR image or None, error)`` given one at a time (a generator that decodes
     each when it is reached: a folder's photos, a video's frames), ``n`` of them (0: not known ahead).
 
     Each frame's rings are found at full resolution and only a copy at the
-    default work size is kept, for the angle marks.
+    default work size is kept, for the angle marks. ``progress(done, total)``
+    counts the frames twice (detection, then single-view calibration);
+    ``fit_progress`` is told each iteration of the joint fit after them.
     """
     from .sequence_stage import calibrate_detected, detect_and_reduce
     from .worksize import choose_work_size
@@ -125,7 +131,7 @@ def calibrate_stream(frames, n: int, spec: TargetSpec, *, step_deg=None, intrins
     return calibrate_detected(det.observations, det.failures, det.names, det.images, spec,
                               marks_map=None if det.work is None else det.work.S, step_deg=step_deg,
                               intrinsics=intrinsics, mode=mode, principal_point_px=principal_point_px,
-                              distortion=distortion, progress=tick2)
+                              distortion=distortion, progress=tick2, fit_progress=fit_progress)
 
 
 def _fmt(x, spec: str, none: str = "-") -> str:
@@ -207,7 +213,8 @@ def run(args) -> int:
     pp = tuple(args.principal_point) if args.principal_point else None
     kw = dict(step_deg=args.step_deg, intrinsics=intr, mode=args.mode, principal_point_px=pp,
               distortion="none" if args.no_distortion else "auto",
-              progress=_progress_printer(sys.stderr, "calibrate-sequence"))
+              progress=_progress_printer(sys.stderr, "calibrate-sequence"),
+              fit_progress=fit_reporter(Progress(sys.stderr), "joint fit"))
     if paths is not None:
         seq = calibrate_folder(paths, spec, **kw)
         exif = exif_focal_report(paths, seq.intrinsics.width, seq.intrinsics.height, seq.intrinsics.focal_px)

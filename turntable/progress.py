@@ -6,14 +6,15 @@ import sys
 import time
 from contextlib import contextmanager
 
-__all__ = ["Progress"]
+__all__ = ["Progress", "fit_reporter"]
 
 
 class Progress:
     """One line per stage; a live bar on a terminal, start/end lines otherwise.
 
     ``with progress.stage("carving") as tick: ... tick(done, total)``; the time
-    of each stage is kept in ``times_s``.
+    of each stage is kept in ``times_s``. Stages that cannot count towards a
+    total (an iterative fit) report through :meth:`status`.
     """
 
     def __init__(self, stream=None, enabled: bool = True):
@@ -21,6 +22,7 @@ class Progress:
         self.enabled = enabled
         self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self.times_s: dict[str, float] = {}
+        self._started: dict[str, float] = {}  # status stages under way: their start
 
     def _write(self, text: str) -> None:
         if self.enabled:
@@ -50,5 +52,41 @@ class Progress:
             self.times_s[name] = self.times_s.get(name, 0.0) + dt
             self._write(f"\r  {name:<14} done in {dt:6.1f} s{' ' * 30}\n")
 
+    def status(self, name: str, text: str, done: bool = False) -> None:
+        """A stage that reports what it is at (an iteration, a cost) rather than a count.
+
+        On a terminal ``text`` replaces the stage's live line; otherwise nothing
+        is written until ``done``, then one line: ``name: text (time)``. The
+        stage's time runs from its first call to the one with ``done``.
+        """
+        now = time.perf_counter()
+        t0 = self._started.setdefault(name, now)
+        if done:
+            del self._started[name]
+            self.times_s[name] = self.times_s.get(name, 0.0) + now - t0
+            end = f" ({now - t0:.1f} s)"
+            self._write(f"\r  {name}: {text}{end}{' ' * 10}\n" if self.tty else f"  {name}: {text}{end}\n")
+        elif self.tty:
+            self._write(f"\r  {name}: {text}{' ' * 10}")
+
     def note(self, text: str) -> None:
         self._write(f"  {text}\n")
+
+
+def fit_reporter(progress: Progress, label: str = "joint fit"):
+    """``report(step)`` for the ``fit_progress`` of :func:`calib.sequence.calibrate_sequence`.
+
+    Each least-squares stage of the joint fit is a :meth:`Progress.status`
+    stage named ``label stage``: its iterations and cost (first -> current)
+    live on a terminal, one line when it ends otherwise.
+    """
+    first: dict[str, float] = {}
+
+    def report(step) -> None:
+        c0 = first.setdefault(step.stage, step.cost)
+        if step.done:
+            del first[step.stage]
+        progress.status(f"{label} {step.stage}", f"{step.iteration} iterations, cost {c0:.6g} -> {step.cost:.6g} "
+                        f"px^2 (rms {step.rms_px:.3f} px)", done=step.done)
+
+    return report

@@ -108,7 +108,7 @@ def calibrate_frames(frames: Sequence[tuple[str, np.ndarray | None, str]], spec:
                      step_deg: float | None = None, intrinsics: Intrinsics | None = None, mode: str = "auto",
                      principal_point_px=None, distortion: str = "auto",
                      progress: Callable[[int, int], None] | None = None,
-                     observations_out: list | None = None) -> SequenceCalibration:
+                     observations_out: list | None = None, fit_progress=None) -> SequenceCalibration:
     """Detect the rings in every frame and calibrate the sequence.
 
     Parameters
@@ -122,6 +122,8 @@ def calibrate_frames(frames: Sequence[tuple[str, np.ndarray | None, str]], spec:
     observations_out : list, optional
         Receives each frame's ``TargetObservation`` (None where not detected),
         for callers that show what was detected.
+    fit_progress : callable(calib.sequence.FitStep), optional
+        Told each iteration of the joint fit (:func:`turntable.progress.fit_reporter`).
 
     Raises
     ------
@@ -148,22 +150,25 @@ def calibrate_frames(frames: Sequence[tuple[str, np.ndarray | None, str]], spec:
         observations_out.extend(obs)
     return calibrate_detected(obs, failures, [f[0] for f in frames], [img for _, img, _ in frames], spec,
                               step_deg=step_deg, intrinsics=intrinsics, mode=mode,
-                              principal_point_px=principal_point_px, distortion=distortion, progress=tick2)
+                              principal_point_px=principal_point_px, distortion=distortion, progress=tick2,
+                              fit_progress=fit_progress)
 
 
 def calibrate_detected(observations: Sequence[TargetObservation | None], failures: Sequence[str],
                        names: Sequence[str], images: Sequence[np.ndarray | None], spec: TargetSpec, *,
                        marks_map: np.ndarray | None = None, step_deg: float | None = None,
                        intrinsics: Intrinsics | None = None, mode: str = "auto", principal_point_px=None,
-                       distortion: str = "auto", progress: Callable[[int, int], None] | None = None
-                       ) -> SequenceCalibration:
+                       distortion: str = "auto", progress: Callable[[int, int], None] | None = None,
+                       fit_progress=None) -> SequenceCalibration:
     """The sequence calibration from ring observations already made (:func:`detect_all`).
 
     ``images`` are what the angle marks are read from: the photos, or copies
     reduced by ``marks_map`` (3, 3), the map of full-image pixel centres to
     theirs (:func:`turntable.worksize.scale_matrix`); the marks are read there
     with the camera matrix ``marks_map @ K``. The observations are always in
-    full-image pixels. Raises ``UserError`` when no frame can be calibrated.
+    full-image pixels. ``progress`` is told each frame's single-view calibration,
+    ``fit_progress`` each iteration of the joint fit (:class:`calib.sequence.FitStep`).
+    Raises ``UserError`` when no frame can be calibrated.
     """
     from calib.sequence import calibrate_sequence
 
@@ -174,7 +179,8 @@ def calibrate_detected(observations: Sequence[TargetObservation | None], failure
         return calibrate_sequence(observations, None if reader is not None else list(images), spec,
                                   names=list(names), failures=list(failures), step_deg=step_deg,
                                   intrinsics=intrinsics, mode=mode, principal_point_px=principal_point_px,
-                                  distortion=distortion, angle_reader=reader, progress=progress)
+                                  distortion=distortion, angle_reader=reader, progress=progress,
+                                  fit_progress=fit_progress)
     except CalibrationError as exc:
         raise UserError(str(exc)) from None
 
