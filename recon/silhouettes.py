@@ -89,6 +89,7 @@ _MIN_TAU = 6.0  # colour distance (0..255 units) below which a pixel agrees with
 _TRUST = 0.6  # a plate is trusted where this fraction of frames agrees with it
 _STRONG = 0.75  # ... and its explanations are hard constraints where this fraction does
 _WORK_PX = 360_000  # GrabCut runs on at most this many pixels (the region's box, downscaled)
+_GRABCUT_SEED = 0  # OpenCV's random generator is seeded with this before every GrabCut: same photos, same masks
 
 
 @dataclass(frozen=True)
@@ -404,6 +405,9 @@ def _grabcut(img, labels, iterations: int = 2) -> np.ndarray:
     else:
         small, lab = img, labels.copy()
     bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
+    # GrabCut starts its colour GMMs with k-means++ drawn from OpenCV's random generator, one per
+    # thread: unseeded, a frame's mask depended on which frames its worker thread had cut before.
+    cv2.setRNGSeed(_GRABCUT_SEED)
     try:
         cv2.grabCut(np.ascontiguousarray(small[..., ::-1]), lab, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
     except cv2.error:  # a class without samples at this scale
