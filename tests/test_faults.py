@@ -330,3 +330,35 @@ def test_a_full_disk_at_any_stage_fails_fast_naming_the_file_and_keeps_the_previ
             res["stderr"][0], res
         assert res["seconds"] < 60, res  # a hang would be killed at 120 s; a normal run here takes ~5 s
         assert res["previous_intact"] and res["leftovers"] == [], res
+
+
+def test_file_names_that_are_not_utf8_give_strict_json_and_a_summary(scene, tmp_path, capsys):
+    """Bytes that are not UTF-8 in a file name become the text \\xNN in every JSON file and on screen."""
+    images, masks = tmp_path / "images", tmp_path / "masks"
+    images.mkdir()
+    masks.mkdir()
+    odd = os.fsdecode(b"frame_\xff03")  # a lone surrogate in Python's view of the name
+    cams = json.loads((scene / "cameras_gt.json").read_text())
+    for p in sorted((scene / "images").iterdir()):
+        stem = odd if p.stem == "frame_003" else p.stem
+        shutil.copy(p, images / f"{stem}{p.suffix}")
+        shutil.copy(scene / "masks" / f"{p.stem}.png", masks / f"{stem}.png")
+    for fr in cams["frames"]:
+        if Path(fr["image"]).stem == "frame_003":
+            fr["image"] = "frame_\\xff03.jpg"
+    (tmp_path / "cams.json").write_text(json.dumps(cams))
+    out = tmp_path / "scan"
+    args = _args(scene, out, "--export-nerfstudio")
+    for flag, value in (("--masks", masks), ("--cameras", tmp_path / "cams.json")):
+        args[args.index(flag) + 1] = str(value)
+    args[1] = str(images)
+    args.remove("--quiet")
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    for name in ("cameras.json", "summary.json", "transforms.json"):
+        text = (out / name).read_bytes().decode("utf-8")  # strict UTF-8
+        assert "\\ud" not in text.lower(), name  # no escaped lone surrogate
+        json.loads(text)
+    names = [fr["image"] for fr in json.loads((out / "cameras.json").read_text())["frames"]]
+    assert "frame_\\xff03.jpg" in names and len(names) == 8
+    assert "frames used     8" in printed

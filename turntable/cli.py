@@ -88,6 +88,9 @@ def main(argv: list[str] | None = None) -> int:
     # force: rebind to the current stderr on every call (tests, or a host program, may swap it)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", force=True)
     previous = _handle_termination()
+    for stream in (sys.stdout, sys.stderr):  # odd file names (undecodable bytes) print as \xNN, never fail
+        if hasattr(stream, "reconfigure"):
+            stream.reconfigure(errors="backslashreplace")
     try:
         return int(importlib.import_module(args._module).run(args) or 0)
     except UserError as exc:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -12,9 +13,24 @@ import numpy as np
 from .errors import UserError
 from .images import IMAGE_SUFFIXES, list_images, read_image
 
-__all__ = ["Frame", "load_frames", "iter_frames", "select_indices", "VIDEO_SUFFIXES"]
+__all__ = ["Frame", "load_frames", "iter_frames", "select_indices", "VIDEO_SUFFIXES", "frame_name", "frame_paths"]
 
 VIDEO_SUFFIXES = {".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v"}
+
+
+def frame_name(file_name: str) -> str:
+    """A file name as the text a frame is known by: any valid name unchanged.
+
+    File names are bytes on Linux; bytes that are not UTF-8 reach Python as lone
+    surrogates, which strict JSON (``cameras.json``, ``summary.json``) and a
+    UTF-8 terminal cannot carry. They become the text ``\\xNN`` here.
+    """
+    return os.fsencode(file_name).decode("utf-8", "backslashreplace")
+
+
+def frame_paths(folder: str | Path) -> dict[str, Path]:
+    """Frame name -> image file of ``folder`` (:func:`frame_name` of each file name)."""
+    return {frame_name(p.name): p for p in list_images(folder)}
 
 
 @dataclass(frozen=True)
@@ -71,7 +87,7 @@ def _read_video(path: Path, n: int, every: int, count: int | None) -> Iterator[F
             if (i in wanted) if wanted is not None else (i % every == 0):
                 ok, img = cap.retrieve()
                 if ok and img is not None:
-                    yield Frame(name=f"{path.stem}_{i:05d}.png", bgr=img)
+                    yield Frame(name=frame_name(f"{path.stem}_{i:05d}.png"), bgr=img)
             i += 1
     finally:
         cap.release()
@@ -136,9 +152,9 @@ def iter_frames(input_path: str | Path, every: int = 1, count: int | None = None
 
 def _read_one(path: Path) -> Frame:
     try:
-        return Frame(name=path.name, bgr=read_image(path))
+        return Frame(name=frame_name(path.name), bgr=read_image(path))
     except UserError as exc:
-        return Frame(name=path.name, bgr=None, error=str(exc).split(": ", 1)[-1])
+        return Frame(name=frame_name(path.name), bgr=None, error=str(exc).split(": ", 1)[-1])
 
 
 def load_frames(input_path: str | Path, every: int = 1, count: int | None = None) -> list[Frame]:

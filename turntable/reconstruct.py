@@ -138,10 +138,11 @@ def _read_masks(masks_dir: Path, names: list[str], ws: WorkSize,
 
 def _mask_files(masks_dir: Path, names: list[str]) -> list[Path | None]:
     """The mask file of each frame, matched by file stem (None: no mask; no folder: all None)."""
+    from .frames import frame_name
     from .images import IMAGE_SUFFIXES
 
     try:
-        by_stem = {p.stem: p for p in sorted(masks_dir.iterdir()) if p.suffix.lower() in IMAGE_SUFFIXES}
+        by_stem = {frame_name(p.stem): p for p in sorted(masks_dir.iterdir()) if p.suffix.lower() in IMAGE_SUFFIXES}
     except OSError:
         by_stem = {}
     return [by_stem.get(Path(n).stem) for n in names]
@@ -169,10 +170,15 @@ def _undistort_with(images: list[np.ndarray], intr, ws: WorkSize) -> list[np.nda
     return [cv2.remap(im, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) for im in images]
 
 
-def _frame_path(opts: ReconstructOptions, name: str) -> Path:
-    """Where frame ``name`` lives on disk (video frames: the video itself)."""
+def _frame_paths(opts: ReconstructOptions, names: list[str]) -> list[Path]:
+    """Where each frame lives on disk (video frames: the video itself)."""
+    from .frames import frame_paths
+
     p = Path(opts.input)
-    return p / name if p.is_dir() else p
+    if not p.is_dir():
+        return [p] * len(names)
+    files = frame_paths(p)
+    return [files.get(n, p / n) for n in names]
 
 
 # --------------------------------------------------------------------------- stages
@@ -626,7 +632,7 @@ def _exif_focal(frames: list[Frame], seq: SequenceCalibration, opts: Reconstruct
     if not Path(opts.input).is_dir():
         return None
     intr = seq.intrinsics
-    report = exif_focal_report([_frame_path(opts, f.name) for f in frames], intr.width, intr.height, intr.focal_px)
+    report = exif_focal_report(_frame_paths(opts, [f.name for f in frames]), intr.width, intr.height, intr.focal_px)
     for line in ((report or {}).get("note"), focal_warning(intr.focal_px, report)):
         if line:
             progress.note(f"cameras: {line}")
@@ -671,8 +677,11 @@ def _export(staging: Path, opts, seq, names, mesh, fused, progress) -> dict[str,
         if opts.export_nerfstudio:
             from recon.export import export_nerfstudio
 
+            from .frames import frame_name
+
             # file paths relative to OUT (where transforms.json is published), pointing at the user's photos
-            rel = [(os.path.relpath(_frame_path(opts, n), opts.out), T_by_name[n]) for n in names]
+            rel = [(frame_name(os.path.relpath(p, opts.out)), T_by_name[n])
+                   for n, p in zip(names, _frame_paths(opts, names))]
             files["nerfstudio"] = export_nerfstudio(intr.K, intr.width, intr.height, rel, out, dist=intr.dist,
                                                     ply_file_path="model.ply")
     return files
@@ -680,6 +689,8 @@ def _export(staging: Path, opts, seq, names, mesh, fused, progress) -> dict[str,
 
 def _summary(seq, names, skipped, mesh, progress, fusion_note, files) -> dict:
     import trimesh
+
+    from .frames import frame_name
 
     tm = trimesh.Trimesh(mesh.vertices_table, mesh.faces, process=False)
     meta = seq.meta
@@ -702,7 +713,7 @@ def _summary(seq, names, skipped, mesh, progress, fusion_note, files) -> dict:
                  "extent_mm": (tm.bounds[1] - tm.bounds[0]).tolist()},
         "fusion": fusion_note,
         "time_s": {k: round(v, 2) for k, v in progress.times_s.items()},
-        "files": {k: str(v) for k, v in files.items()},
+        "files": {k: frame_name(str(v)) for k, v in files.items()},  # strict JSON whatever the path
     }
 
 
