@@ -352,6 +352,24 @@ def _stage_silhouettes(images_rgb, names, K, Ts, opts, cache, key, progress, vol
     return _Silhouettes(masks, unknown, status)
 
 
+_GREY = ("the photos are greyscale: automatic silhouettes tell the object from the table and the background "
+         "mostly by colour; photograph in colour, or give --masks")
+
+
+def _greyscale(images_rgb: list[np.ndarray]) -> bool:
+    """Whether the (first few) photos carry no colour: R, G and B within 2 levels everywhere."""
+    sample = images_rgb[:3]
+    return bool(sample) and all(int(np.ptp(im.astype(np.int16), axis=2).max()) <= 2 for im in sample)
+
+
+def _silhouettes_said(names: list[str], sil: "_Silhouettes", shown: int = 8) -> str:
+    """Each view's silhouette, as its share of the image and its verdict (for an error that stops the run)."""
+    share = sil.masks.reshape(len(names), -1).mean(axis=1)
+    items = [f"{n} {100 * a:.1f} % {st}" for n, a, st in zip(names, share, sil.status)]
+    more = f" and {len(items) - shown} more" if len(items) > shown else ""
+    return "silhouettes (share of the image, verdict): " + ", ".join(items[:shown]) + more
+
+
 def _silhouette_verdicts(names, status) -> tuple[list[int], dict[str, str], dict[str, str]]:
     """Kept view indices, rejected frames and conservative (kept) frames, each with its reason."""
     keep, rejected, conservative = [], {}, {}
@@ -419,9 +437,17 @@ def _silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progre
     clipped: list[str] = []
     doubtful_wall: list[str] = []
 
+    grey = automatic and _greyscale(images_rgb)
+    if grey:
+        progress.note(f"silhouettes: {_GREY}")
+
     def carve(sil, keep, key, vol):
         hull_key = stage_key(key, keep, opts.resolution, _max_rejections(opts), vol.key())
-        return _stage_hull(sil.masks[keep] | sil.unknown[keep], K, Ts[keep], opts, cache, hull_key, progress, vol)
+        try:
+            return _stage_hull(sil.masks[keep] | sil.unknown[keep], K, Ts[keep], opts, cache, hull_key, progress,
+                               vol)
+        except UserError as exc:  # nothing left: say what each view's silhouette was
+            raise UserError(f"{exc}; {_silhouettes_said(names, sil)}" + (f"; {_GREY}" if grey else "")) from None
 
     sil, sil_for = None, None
     for _ in range(32):  # each pass grows the volume or ends the loop; the bound is a safety net
