@@ -29,11 +29,21 @@ Out-of-image policy: a view in which a point projects outside the image (or
 behind the camera) cannot reject it (the object may overhang the frame edge
 in a few views); a point must however be seen by at least half of the views
 (and by more than ``k``), otherwise it is outside.
+
+Memory: the result is a dense float32 grid (``4 N`` bytes for ``N`` voxels:
+2.7 GB at resolution 1024 around a vase). Each level is refined in slabs of
+about ``_SLAB_VOXELS`` fine voxels (the previous level, 1/8 of the size, is
+the only other grid alive) and the result is clipped in place, so the peak
+is about ``4.5 N`` bytes plus the views' distance maps and fixed slab
+buffers (:func:`hull_peak_bytes`); before the fine grid is allocated it is
+compared with the memory available (Linux ``MemAvailable``) and refused
+(:class:`HullTooLarge`) when it cannot fit.
 """
 
 from __future__ import annotations
 
 import math
+import sys
 from typing import Callable
 
 import cv2
@@ -44,12 +54,44 @@ from calib.camera import as_K, as_poses
 from .types import VoxelHull
 
 __all__ = ["carve_hull", "silhouette_sdf_px", "largest_visible_radius_mm", "largest_visible_height_mm",
-           "largest_carvable_radius_mm"]
+           "largest_carvable_radius_mm", "hull_peak_bytes", "HullTooLarge"]
 
 _UNSEEN_PX = 1.0e6  # distance-map value that means "this view has no opinion"
 _BAND = 1.25 * math.sqrt(3.0) / 2.0  # refine when |D| < _BAND * cell edge (half diagonal + 25 %)
 _CHUNK = 1 << 16  # points per evaluation chunk (memory: 3 x views x chunk x 4 B)
 _COARSE = 32  # voxels along the longest axis of the coarsest level
+_SLAB_VOXELS = 1 << 20  # fine voxels refined per slab (index, point and value buffers: up to ~120 B per voxel)
+_SLAB_BYTES = 200 << 20  # what one slab's temporaries and an evaluation chunk take at most
+
+
+class HullTooLarge(ValueError):
+    """The hull grid at this resolution would not fit in the memory available.
+
+    ``resolution``, ``shape`` (the grid, voxels), ``needed_bytes`` (the
+    carve's estimated peak, :func:`hull_peak_bytes`) and ``available_bytes``.
+    """
+
+    def __init__(self, resolution: int, shape: tuple, needed_bytes: int, available_bytes: int):
+        self.resolution, self.shape = resolution, tuple(int(n) for n in shape)
+        self.needed_bytes, self.available_bytes = int(needed_bytes), int(available_bytes)
+        super().__init__(
+            f"resolution {resolution} needs a {' x '.join(map(str, self.shape))} voxel grid: about "
+            f"{needed_bytes / 2**30:.1f} GB to carve, more than the {available_bytes / 2**30:.1f} GB of memory "
+            f"available; use a lower resolution (each halving divides it by 8)")
+
+
+def memory_available_bytes() -> int | None:
+    """``MemAvailable`` of ``/proc/meminfo`` (Linux), bytes; None where it cannot be read."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
 
 
 def silhouette_sdf_px(mask: np.ndarray, margin_px: int = 64) -> np.ndarray:
@@ -293,18 +335,84 @@ def _tight_box(views: _Views, region: _Region) -> tuple[np.ndarray, np.ndarray]:
     return np.maximum(lo, region.lo), np.minimum(hi, region.hi)
 
 
-def _refine(vals, views, region, origin, voxel_mm) -> np.ndarray:
-    """One level finer: children of cells near the zero level set are evaluated, others inherit."""
+def _slab_planes(plane_voxels: int) -> int:
+    """x-planes of the coarser grid per slab, for ``plane_voxels`` voxels in one of its planes."""
+    return max(1, _SLAB_VOXELS // (8 * max(plane_voxels, 1)))
+
+
+def _refine(vals, views, region, origin, voxel_mm) -> tuple[np.ndarray, int]:
+    """One level finer: children of cells near the zero level set are evaluated, others inherit.
+
+    Slab by slab along x (the new grid is the only full-size allocation).
+    Returns the finer grid and how many parents were refined.
+    """
     nx, ny, nz = vals.shape
-    child = np.broadcast_to(vals[:, None, :, None, :, None], (nx, 2, ny, 2, nz, 2)).reshape(2 * nx, 2 * ny, 2 * nz)
-    parents = np.argwhere(np.abs(vals) < _BAND * 2.0 * voxel_mm)
-    if len(parents) == 0:
-        return child
+    child = np.empty((2 * nx, 2 * ny, 2 * nz), np.float32)
     offsets = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
-    idx = (2 * parents[:, None, :] + offsets[None]).reshape(-1, 3)
-    pts = _centres(origin, voxel_mm, idx)
-    child[idx[:, 0], idx[:, 1], idx[:, 2]] = np.minimum(views.evaluate(pts), region.sdf(pts))
-    return child
+    band = _BAND * 2.0 * voxel_mm
+    step = _slab_planes(ny * nz)
+    refined = 0
+    for a in range(0, nx, step):
+        part = vals[a:a + step]
+        m = len(part)
+        child[2 * a:2 * (a + m)] = np.broadcast_to(part[:, None, :, None, :, None],
+                                                   (m, 2, ny, 2, nz, 2)).reshape(2 * m, 2 * ny, 2 * nz)
+        parents = np.argwhere(np.abs(part) < band)
+        if len(parents) == 0:
+            continue
+        parents[:, 0] += a
+        refined += len(parents)
+        idx = (2 * parents[:, None, :] + offsets[None]).reshape(-1, 3)
+        pts = _centres(origin, voxel_mm, idx)
+        child[idx[:, 0], idx[:, 1], idx[:, 2]] = np.minimum(views.evaluate(pts), region.sdf(pts))
+    return child, refined
+
+
+def _touching(vals, region, origin, voxel_mm) -> tuple[int, int]:
+    """``region.touching`` of the inside voxels within a voxel of the region's boundary, slab by slab.
+
+    Such a voxel has a value below a voxel (``D <= region``).
+    """
+    side = top = 0
+    step = _slab_planes(vals.shape[1] * vals.shape[2] // 8)
+    for a in range(0, vals.shape[0], step):
+        part = vals[a:a + step]
+        near = np.argwhere((part > 0) & (part < voxel_mm))
+        near[:, 0] += a
+        s, t = region.touching(origin + near * voxel_mm, voxel_mm)
+        side, top = side + s, top + t
+    return side, top
+
+
+def _grid(views: "_Views", region: _Region, resolution: int) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """The fine grid around what the coarse carve keeps: ``(lo, hi, voxel_mm, levels)`` and its ``dims``."""
+    levels = max(0, int(round(math.log2(int(resolution) / _COARSE))))
+    lo, hi = _tight_box(views, region)
+    voxel = float((hi - lo).max()) / int(resolution)
+    step = 2 ** levels
+    dims = step * np.ceil(((hi - lo) + 4.0 * voxel) / (voxel * step)).astype(int)
+    return (lo, hi, voxel, levels), dims
+
+
+def _peak_bytes(dims, n_views: int, image_hw: tuple[int, int]) -> int:
+    """Estimated peak (bytes) of carving a grid of ``dims``: the grid, the level before it (1/8), the
+    views' float32 distance maps, and the bounded slab and chunk buffers."""
+    n = int(np.prod(np.asarray(dims, dtype=np.int64)))
+    return int(4 * n * 9 // 8 + 4 * n_views * image_hw[0] * image_hw[1] + _SLAB_BYTES)
+
+
+def hull_peak_bytes(masks: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, *,
+                    bounds_table: np.ndarray | None = None, radius_mm: float | None = None,
+                    height_mm: float | None = None, resolution: int = 256, max_rejections: int = 1) -> int:
+    """Estimated peak memory (bytes) of :func:`carve_hull` with these arguments, beyond its inputs.
+
+    Runs the coarse carve (``32^3`` points) to find the grid; the fine grid is not allocated.
+    """
+    masks, K, T, k = _check_inputs(masks, K, T_cam_table, max_rejections)
+    V, H, W = masks.shape
+    views = _Views(masks, K, T, k)
+    _, dims = _grid(views, _make_region(bounds_table, radius_mm, height_mm, K, T, W, H), resolution)
+    return _peak_bytes(dims, V, (H, W))
 
 
 def carve_hull(masks: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, *,
@@ -353,15 +461,15 @@ def carve_hull(masks: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, *,
         raise ValueError(f"resolution must be at least 4, got {resolution}")
     V, H, W = masks.shape
     region = _make_region(bounds_table, radius_mm, height_mm, K, T, W, H)
-    levels = max(0, int(round(math.log2(int(resolution) / _COARSE))))
-    total = levels + 2
     views = _Views(masks, K, T, k)
-    lo, hi = _tight_box(views, region)
+    (lo, hi, voxel, levels), dims = _grid(views, region, resolution)
+    total = levels + 2
     if progress is not None:
         progress(1, total)
-    voxel = float((hi - lo).max()) / int(resolution)
+    needed, available = _peak_bytes(dims, V, (H, W)), memory_available_bytes()
+    if available is not None and needed > available:
+        raise HullTooLarge(int(resolution), dims, needed, available)
     step = 2 ** levels
-    dims = step * np.ceil(((hi - lo) + 4.0 * voxel) / (voxel * step)).astype(int)
     centre = 0.5 * (lo + hi)
     h = voxel * step
     vals = _evaluate_dense(views, region, centre - 0.5 * (dims // step - 1) * h, h, dims // step)
@@ -371,16 +479,14 @@ def carve_hull(masks: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, *,
     for level in range(1, levels + 1):
         h = voxel * 2 ** (levels - level)
         n = dims // 2 ** (levels - level)
-        before = np.count_nonzero(np.abs(vals) < _BAND * 2.0 * h)
-        vals = _refine(vals, views, region, centre - 0.5 * (n - 1) * h, h)
-        evaluated += 8 * before
+        vals, refined = _refine(vals, views, region, centre - 0.5 * (n - 1) * h, h)
+        evaluated += 8 * refined
         if progress is not None:
             progress(2 + level, total)
     cap = np.float32(np.linalg.norm(region.hi - region.lo))
     origin = centre - 0.5 * (dims - 1) * voxel
-    # an inside voxel within a voxel of the region's boundary has a value below a voxel (D <= region)
-    inside = origin + np.argwhere((vals > 0) & (vals < voxel)) * voxel
-    side, top = region.touching(inside, voxel)
+    side, top = _touching(vals, region, origin, voxel)
+    np.clip(vals, -cap, cap, out=vals)
     meta = {"max_rejections": k, "views": V, "region_lo": region.lo.tolist(), "region_hi": region.hi.tolist(),
             "evaluated": int(evaluated), "touches_side": side, "touches_top": top}
-    return VoxelHull(values=np.clip(vals, -cap, cap), origin_table=origin, voxel_mm=voxel, meta=meta)
+    return VoxelHull(values=vals, origin_table=origin, voxel_mm=voxel, meta=meta)

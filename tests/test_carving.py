@@ -175,3 +175,42 @@ def test_carvable_radius_grows_with_the_view():
     K_tele = K.copy()
     K_tele[0, 0] = K_tele[1, 1] = 2.0 * F_PX
     assert largest_carvable_radius_mm(K_tele, T, W, H, 60.0) < carvable  # a narrower view, a smaller volume
+
+
+def test_slabs_change_nothing_and_bound_the_memory_beyond_the_grid(scene, monkeypatch):
+    """Carving refines slab by slab: the memory it needs beyond the result, the level before it (1/8
+    of it) and the views' distance maps does not grow with the grid (a full-grid temporary, such as
+    the child grid copied and clipped out of place, adds 4 bytes per voxel: 23 MB here); and the
+    slabs' seams change no value."""
+    import tracemalloc
+
+    import recon.carving as rc
+
+    T, masks = scene
+    EXCESS_MB = 8.0  # evaluation chunks of 2^16 points x 12 views and 2^16-voxel slabs: 1 MB measured
+    reference = carve_hull(masks, K, T, radius_mm=80.0, resolution=64)
+    monkeypatch.setattr(rc, "_SLAB_VOXELS", 1 << 16)
+    hull = carve_hull(masks, K, T, radius_mm=80.0, resolution=64)  # 5 slabs in the last level
+    assert np.array_equal(hull.values, reference.values) and hull.meta == reference.meta
+    tracemalloc.start()
+    hull = carve_hull(masks, K, T, radius_mm=80.0, resolution=160)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    excess_mb = (peak - hull.values.nbytes * 9 / 8 - masks.size * 4) / 2**20
+    assert excess_mb < EXCESS_MB, excess_mb
+
+
+def test_a_grid_larger_than_the_memory_available_is_refused_before_it_is_allocated(scene, monkeypatch):
+    import recon.carving as rc
+
+    T, masks = scene
+    need = rc.hull_peak_bytes(masks, K, T, radius_mm=80.0, resolution=64)
+    hull = carve_hull(masks, K, T, radius_mm=80.0, resolution=64)
+    assert need > hull.values.nbytes * 9 / 8 + masks.size * 4
+    monkeypatch.setattr(rc, "memory_available_bytes", lambda: need - 1)
+    with pytest.raises(rc.HullTooLarge, match=r"resolution 64 needs a \d+ x \d+ x \d+ voxel grid") as err:
+        carve_hull(masks, K, T, radius_mm=80.0, resolution=64)
+    assert isinstance(err.value, ValueError) and err.value.needed_bytes == need
+    assert "GB of memory available" in str(err.value)
+    monkeypatch.setattr(rc, "memory_available_bytes", lambda: None)  # not Linux: no refusal
+    assert np.array_equal(carve_hull(masks, K, T, radius_mm=80.0, resolution=64).values, hull.values)
