@@ -443,7 +443,7 @@ def _levenberg_marquardt(problem: _Problem, x0: np.ndarray, robust_px: float | N
 
     def cost_of(r):
         if robust_px is None:
-            return float(r @ r)
+            return _sum_sq(r)
         z = (r / robust_px) ** 2
         return float(np.sum(2.0 * (np.sqrt(1.0 + z) - 1.0))) * robust_px**2
 
@@ -487,6 +487,12 @@ def _levenberg_marquardt(problem: _Problem, x0: np.ndarray, robust_px: float | N
     return x
 
 
+def _sum_sq(r: np.ndarray) -> float:
+    """``sum(r**2)`` by numpy's own pairwise sum: ``r @ r`` is BLAS's ddot, which splits a long vector
+    over its threads, so the sum (and every std derived from it) depended on their number."""
+    return float(np.sum(r * r))
+
+
 def _solve(problem: _Problem, robust: bool, report: FitReport | None = None, stage: str = "") -> _Fit:
     x0 = np.zeros(problem.n_params)
     label = f"{stage}, robust" if robust and stage else stage
@@ -495,7 +501,7 @@ def _solve(problem: _Problem, robust: bool, report: FitReport | None = None, sta
     J = problem.jacobian(x)
     n_e = int(problem.row_start[-1])
     dof = max(len(r) - problem.n_params, 1)
-    s2 = float(r @ r) / dof
+    s2 = _sum_sq(r) / dof
     std = _global_std(problem, J, s2)
     names = list(problem.free_intr) + (["stroke"] if problem.free_stroke else [])
     st = problem.unpack(x)
