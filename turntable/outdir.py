@@ -48,6 +48,20 @@ DISK_FULL_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
 
 _MANIFEST = ".manifest.json"
 
+#: A run never writes less than this (model files of the smallest mesh, cameras, summary, recording).
+MIN_ROOM = 64 << 10
+
+
+def _files(p: Path) -> list[Path]:
+    try:
+        return [p] if p.is_file() else [q for q in p.rglob("*") if q.is_file()]
+    except OSError:
+        return []
+
+
+def _mb(n: int) -> str:
+    return f"{n / 1e6:.1f} MB" if n >= 100_000 else f"{n / 1e3:.0f} kB"
+
 
 def write_error(exc: OSError, out: Path, staging: Path | None = None) -> UserError:
     """A one-line error for a failed write under ``out``: the file, the reason, and that OUT is unchanged.
@@ -147,6 +161,7 @@ class OutputFolder:
         self._lock.acquire(str(self.out))
         try:
             self._recover()
+            self._check_room()
             self.staging.mkdir()
         except OSError as exc:
             self._lock.release()
@@ -155,6 +170,24 @@ class OutputFolder:
             self._lock.release()
             raise
         return self
+
+    def _check_room(self) -> None:
+        """Refuse at once when OUT's disk cannot hold even half the last run's files (a full disk).
+
+        A run writes its whole set beside the old one; a disk that fills later in
+        the run fails at that write (naming the file) — this only spares the
+        wait for a disk that is already full.
+        """
+        try:
+            free = shutil.disk_usage(self.out).free
+        except OSError:
+            return
+        last = sum(p.stat().st_size for n in self.published_names() for p in _files(self.out / n))
+        need = max(MIN_ROOM, last // 2)
+        if free < need:
+            raise UserError(f"cannot write {self.out}: no space left on the device ({_mb(free)} free; a run writes "
+                            f"at least {_mb(need)}" + (f", the last one wrote {_mb(last)}" if last else "") +
+                            f"); {self.out} was left as it was")
 
     def __exit__(self, exc_type, exc, tb) -> None:
         try:
