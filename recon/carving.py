@@ -61,7 +61,7 @@ _BAND = 1.25 * math.sqrt(3.0) / 2.0  # refine when |D| < _BAND * cell edge (half
 _CHUNK = 1 << 16  # points per evaluation chunk (memory: 3 x views x chunk x 4 B)
 _COARSE = 32  # voxels along the longest axis of the coarsest level
 _SLAB_VOXELS = 1 << 20  # fine voxels refined per slab (index, point and value buffers: up to ~120 B per voxel)
-_SLAB_BYTES = 200 << 20  # what one slab's temporaries and an evaluation chunk take at most
+_SLAB_BYTES = 300 << 20  # one slab's temporaries, an evaluation chunk and allocator slack (measured: 263 MB at 1024)
 
 
 class HullTooLarge(ValueError):
@@ -384,7 +384,7 @@ def _touching(vals, region, origin, voxel_mm) -> tuple[int, int]:
     return side, top
 
 
-def _grid(views: "_Views", region: _Region, resolution: int) -> tuple[np.ndarray, np.ndarray, float, int]:
+def _grid(views: "_Views", region: _Region, resolution: int) -> tuple[tuple, np.ndarray]:
     """The fine grid around what the coarse carve keeps: ``(lo, hi, voxel_mm, levels)`` and its ``dims``."""
     levels = max(0, int(round(math.log2(int(resolution) / _COARSE))))
     lo, hi = _tight_box(views, region)
@@ -406,7 +406,8 @@ def hull_peak_bytes(masks: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, *
                     height_mm: float | None = None, resolution: int = 256, max_rejections: int = 1) -> int:
     """Estimated peak memory (bytes) of :func:`carve_hull` with these arguments, beyond its inputs.
 
-    Runs the coarse carve (``32^3`` points) to find the grid; the fine grid is not allocated.
+    Computes the views' distance maps and the coarse carve (``32^3`` points)
+    to find the grid; the fine grid is not allocated.
     """
     masks, K, T, k = _check_inputs(masks, K, T_cam_table, max_rejections)
     V, H, W = masks.shape
