@@ -303,8 +303,13 @@ def test_rendered_turntable_sequence_end_to_end(tmp_path, capsys):
     for k, T in enumerate(Ts):
         cv2.imwrite(str(tmp_path / "imgs" / f"frame_{k}.png"), render_target_photo(SPEC, K, T, size, rng=rng).image)
     rc = _cli([str(tmp_path / "imgs"), "--r-outer", "80", "--r-inner", "50", "--out", str(tmp_path / "cams.json")])
-    assert rc == 0, capsys.readouterr().err
-    assert "focal length" in capsys.readouterr().out
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    assert "focal length" in out.out
+    # off a terminal, one line per stage of the joint fit, with its iterations and cost
+    fit_lines = [line for line in out.err.splitlines() if line.startswith("  joint fit ")]
+    assert fit_lines[0].startswith("  joint fit turntable, robust: ") and "iterations, cost" in fit_lines[0]
+    assert any(line.startswith("  joint fit turntable: ") for line in fit_lines), fit_lines
     seq = read_cameras(tmp_path / "cams.json")
     assert seq.mode == "turntable" and all(fr.ok for fr in seq.frames)
     assert abs(seq.intrinsics.focal_px / f - 1) < 0.005
