@@ -30,12 +30,12 @@ def test_impossible_numbers_are_refused_naming_the_flag(tmp_path, capsys, argv, 
 
 def test_an_internal_error_has_its_own_exit_code(monkeypatch, capsys, tmp_path):
     """A bug of ours exits 4 with one line (not 1, which means "finished, some inputs failed")."""
-    import turntable.cmd_pattern
+    import turntable.cli.pattern
 
     def boom(args):
         raise RuntimeError("simulated bug")
 
-    monkeypatch.setattr(turntable.cmd_pattern, "run", boom)
+    monkeypatch.setattr(turntable.cli.pattern, "run", boom)
     code = main(["pattern", str(tmp_path / "t.pdf")])
     err = capsys.readouterr().err
     assert code == 4 and "internal error: RuntimeError: simulated bug" in err and "Traceback" not in err

@@ -358,7 +358,7 @@ def test_calibrate_single_photo_reports_exif_focal(tmp_path, upright_photos, cap
 def test_reconstruct_prints_the_exif_check():
     from types import SimpleNamespace
 
-    from turntable.cmd_reconstruct import print_summary
+    from turntable.cli.reconstruct import print_summary
 
     summary = {"frames_used": 3, "focal_px": 1100.0, "mode": "turntable",
                "exif_focal": {"focal_35mm": 26.0, "focal_px": 1000.0, "photos": 3, "calibrated_vs_exif_pct": 10.0,

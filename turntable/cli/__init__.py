@@ -2,7 +2,7 @@
 
 Command line: a thin dispatcher over one module per subcommand.
 
-Each command module ``turntable.cmd_<name>`` defines ``add_arguments(parser)``
+Each command module ``turntable.cli.<name>`` defines ``add_arguments(parser)``
 and ``run(args) -> int``. Modules are imported only when their command runs, so
 ``turntable pattern`` never pays for open3d.
 """
@@ -15,16 +15,16 @@ import importlib.util
 import logging
 import sys
 
-from .errors import UserError
+from ..errors import UserError
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "calibrate": ("turntable.cmd_calibrate", "focal length and table pose from single photos of the two-ring target"),
-    "pattern": ("turntable.cmd_pattern", "write the printable target (PDF, SVG or PNG)"),
-    "synth": ("turntable.cmd_synth", "render a synthetic turntable sequence with ground truth"),
+    "calibrate": ("turntable.cli.calibrate", "focal length and table pose from single photos of the two-ring target"),
+    "pattern": ("turntable.cli.pattern", "write the printable target (PDF, SVG or PNG)"),
+    "synth": ("turntable.cli.synth", "render a synthetic turntable sequence with ground truth"),
     "calibrate-sequence": ("turntable.cmd_sequence", "calibrate a whole turntable sequence into cameras.json"),
-    "reconstruct": ("turntable.cmd_reconstruct", "photos of an object on the turntable -> coloured mesh + Rerun recording"),
-    "view": ("turntable.cmd_view", "open a Rerun recording written by reconstruct"),
+    "reconstruct": ("turntable.cli.reconstruct", "photos of an object on the turntable -> coloured mesh + Rerun recording"),
+    "view": ("turntable.cli.view", "open a Rerun recording written by reconstruct"),
 }
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from calib.target import TargetSpec
 
-from .errors import UserError
+from ..errors import UserError
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +37,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from .pattern import paper_size_mm, parse_background, write_pattern
+    from ..pattern import paper_size_mm, parse_background, write_pattern
 
     out = Path(args.out)
     if out.suffix.lower() not in FORMATS:

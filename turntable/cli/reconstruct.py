@@ -6,12 +6,12 @@ import math
 import sys
 from pathlib import Path
 
-from .cmd_calibrate import add_target_arguments, target_from_args
-from .errors import UserError
-from .images import focal_warning
-from .progress import Progress
-from .reconstruct import ReconstructOptions, reconstruct
-from .worksize import parse_work_size
+from .args import add_target_arguments, target_from_args
+from ..errors import UserError
+from ..images import focal_warning
+from ..progress import Progress
+from ..reconstruct import ReconstructOptions, reconstruct
+from ..worksize import parse_work_size
 
 
 def add_arguments(parser) -> None:
@@ -131,7 +131,7 @@ def run(args) -> int:
     out = opts.out
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out}: exists and is a file, not a folder")
-    from .recording import Recorder
+    from ..recording import Recorder
 
     progress = Progress(enabled=not args.quiet)
     rec = Recorder()  # in memory; reconstruct writes it to OUT/recording.rrd with the other outputs
@@ -150,7 +150,7 @@ def run(args) -> int:
     if opts.spawn:  # the viewer runs on its own; this command does not wait for it
         import subprocess
 
-        from .cmd_view import viewer_command
+        from .view import viewer_command
 
         try:
             subprocess.Popen(viewer_command(out), start_new_session=True,

@@ -11,7 +11,7 @@ import argparse
 import logging
 import time
 
-from .errors import UserError
+from ..errors import UserError
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +81,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def options_from_args(args: argparse.Namespace):
     """:class:`~turntable.synth.sequence.SynthOptions` from parsed arguments; UserError when invalid."""
-    from .synth.sequence import SynthOptions
+    from ..synth.sequence import SynthOptions
 
     w, h = args.size
     try:
@@ -100,7 +100,7 @@ def options_from_args(args: argparse.Namespace):
 
 def run(args: argparse.Namespace) -> int:
     opts = options_from_args(args)
-    from .synth.sequence import make_sequence
+    from ..synth.sequence import make_sequence
 
     t0 = time.perf_counter()
     try:
