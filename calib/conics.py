@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .types import as_points
+
 __all__ = [
     "Ellipse",
     "fit_conic",
@@ -89,9 +91,11 @@ def fit_conic(uv_px: np.ndarray, weights: np.ndarray | None = None) -> np.ndarra
     """Ellipse-specific direct least-squares conic through ``uv_px`` (N >= 5, 2).
 
     Returns the normalised 3x3 conic (see :func:`normalize_conic`). Raises
-    ``ValueError`` when the points do not determine an ellipse.
+    ``ValueError`` when the points do not determine an ellipse, or when
+    ``uv_px`` is not (N, 2) (OpenCV's (N, 1, 2) is accepted) or ``weights``
+    not (N,).
     """
-    uv = np.asarray(uv_px, dtype=np.float64).reshape(-1, 2)
+    uv = as_points(uv_px, 2, "uv_px")
     if len(uv) < 5:
         raise ValueError(f"need at least 5 points to fit a conic, got {len(uv)}")
     T = _hartley(uv)
@@ -100,7 +104,10 @@ def fit_conic(uv_px: np.ndarray, weights: np.ndarray | None = None) -> np.ndarra
     D1 = np.column_stack([x * x, x * y, y * y])
     D2 = np.column_stack([x, y, np.ones_like(x)])
     if weights is not None:
-        w = np.sqrt(np.asarray(weights, dtype=np.float64)).reshape(-1, 1)
+        w = np.asarray(weights, dtype=np.float64)
+        if w.shape != (len(uv),):
+            raise ValueError(f"weights must be ({len(uv)},) like uv_px, got {w.shape}")
+        w = np.sqrt(w)[:, None]
         D1, D2 = D1 * w, D2 * w
     S1, S2, S3 = D1.T @ D1, D1.T @ D2, D2.T @ D2
     try:
@@ -157,7 +164,7 @@ def ellipse_to_conic(e: Ellipse) -> np.ndarray:
 
 def algebraic_residual(C: np.ndarray, uv_px: np.ndarray) -> np.ndarray:
     """``x^T C x`` for each point (N,)."""
-    uv = np.asarray(uv_px, dtype=np.float64).reshape(-1, 2)
+    uv = as_points(uv_px, 2, "uv_px")
     x = np.column_stack([uv, np.ones(len(uv))])
     return np.einsum("ij,jk,ik->i", x, C, x)
 
@@ -167,7 +174,7 @@ def sampson_distance(C: np.ndarray, uv_px: np.ndarray) -> np.ndarray:
 
     ``x^T C x / (2 |(C x)_{1:2}|)``; negative inside for a normalised ellipse.
     """
-    uv = np.asarray(uv_px, dtype=np.float64).reshape(-1, 2)
+    uv = as_points(uv_px, 2, "uv_px")
     x = np.column_stack([uv, np.ones(len(uv))])
     Cx = x @ C.T
     num = np.einsum("ij,ij->i", x, Cx)

@@ -23,6 +23,7 @@ __all__ = [
     "FramePose",
     "SequenceCalibration",
     "image_centre",
+    "as_points",
 ]
 
 
@@ -94,6 +95,21 @@ def image_centre(width: int, height: int) -> tuple[float, float]:
     return (width - 1) / 2.0, (height - 1) / 2.0
 
 
+def as_points(points, dim: int, name: str) -> np.ndarray:
+    """``points`` as (N, ``dim``) float64 rows, OpenCV's (N, 1, ``dim``) squeezed.
+
+    Raises ``ValueError`` naming the argument and the shape received for any
+    other shape (a flat array, the transpose, a wrong width), which a bare
+    ``reshape(-1, dim)`` would silently reinterpret.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim == 3 and pts.shape[1] == 1:
+        pts = pts[:, 0, :]
+    if pts.ndim != 2 or pts.shape[1] != dim:
+        raise ValueError(f"{name} must be (N, {dim}), got {np.shape(points)}")
+    return pts
+
+
 @dataclass(frozen=True)
 class EdgePoints:
     """Sub-pixel edge points that lie on one printed circle edge.
@@ -119,8 +135,7 @@ class EdgePoints:
     side: int
 
     def __post_init__(self) -> None:
-        uv = np.asarray(self.uv_px, dtype=np.float64).reshape(-1, 2)
-        object.__setattr__(self, "uv_px", uv)
+        object.__setattr__(self, "uv_px", as_points(self.uv_px, 2, "uv_px"))
         if self.side not in (-1, 0, 1):
             raise ValueError(f"side must be -1, 0 or +1, got {self.side}")
 

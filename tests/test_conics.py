@@ -1,11 +1,14 @@
 """Conic fitting and ellipse parameters against exact projected circles."""
 
+import re
+
 import numpy as np
 import pytest
 
 from calib.camera import circle_conic, circle_points_table, make_T, project_points, rotation_from_normal
 from calib.conics import (
     Ellipse,
+    algebraic_residual,
     conic_center,
     conic_coeffs,
     conic_from_coeffs,
@@ -17,6 +20,7 @@ from calib.conics import (
     normalize_conic,
     sampson_distance,
 )
+from calib.types import EdgePoints
 
 EXACT = 1e-9  # relative, noise-free data
 
@@ -85,3 +89,27 @@ def test_degenerate_inputs_raise():
         fit_conic(line)
     hyperbola = conic_from_coeffs([1.0, 0.0, -1.0, 0.0, 0.0, -1.0])
     assert not is_ellipse(hyperbola)
+
+
+@pytest.mark.parametrize("shape", [(5, 3), (2, 8), (10,), (4, 1, 3)])
+def test_wrong_point_shapes_raise_naming_the_argument(shape):
+    bad = np.zeros(shape)
+    C = ellipse_to_conic(Ellipse(center_px=np.zeros(2), a=100.0, b=50.0, angle_rad=0.0))
+    expected = rf"uv_px must be \(N, 2\), got {re.escape(str(shape))}"
+    for call in (lambda: fit_conic(bad), lambda: sampson_distance(C, bad), lambda: algebraic_residual(C, bad),
+                 lambda: EdgePoints(bad, 50.0, 0)):
+        with pytest.raises(ValueError, match=expected):
+            call()
+
+
+def test_opencv_point_layout_is_accepted():
+    e = Ellipse(center_px=np.array([320.0, 240.0]), a=100.0, b=60.0, angle_rad=0.3)
+    uv = ellipse_points(e, 50)
+    np.testing.assert_array_equal(fit_conic(uv[:, None, :]), fit_conic(uv))
+    np.testing.assert_array_equal(EdgePoints(uv[:, None, :], 50.0, 0).uv_px, uv)
+
+
+def test_conic_weights_must_match_the_points():
+    uv = ellipse_points(Ellipse(center_px=np.zeros(2), a=100.0, b=60.0, angle_rad=0.0), 20)
+    with pytest.raises(ValueError, match=r"weights must be \(20,\) like uv_px, got \(19,\)"):
+        fit_conic(uv, weights=np.ones(19))
