@@ -20,35 +20,60 @@ what a view cannot rule out.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from scipy.ndimage import binary_dilation
 
-if TYPE_CHECKING:
-    from .silhouettes import _Evidence, _Plate
+__all__ = ["Plate", "Evidence", "doubtful_pixels", "texture_match", "colour_dist", "plate_envelope", "range_dist",
+           "shadow_dist", "colour_set", "in_set", "MAJOR_SHARE"]
 
 
-def _colour_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+@dataclass(frozen=True)
+class Plate:
+    """A background plate in the box of one frame: median, 3x3 envelope, where it is trusted."""
+
+    mid: np.ndarray  # (h, w, 3) uint8
+    lo: np.ndarray
+    hi: np.ndarray
+    trust: np.ndarray  # (h, w) bool
+    strong: np.ndarray  # (h, w) bool: background in nearly every frame
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """What the plates say about the pixels (h, w) of one frame's box."""
+
+    labels: np.ndarray  # uint8 GrabCut labels
+    explained: np.ndarray  # bool: a trusted plate matches the pixel's colour (its 3x3 envelope)
+    tight: np.ndarray  # bool: ... and the plate's own colour there, within 2 tau (not loosely, at an edge)
+    shadow: np.ndarray  # bool: a darker copy of a trusted plate matches it
+    trusted: np.ndarray  # bool: some plate is trusted here
+    disagrees: np.ndarray  # bool: a trusted plate contradicts the pixel
+    background: np.ndarray  # (h, w, 3) uint8: the trusted plate's colour
+    usable: np.ndarray  # bool: where ``background`` is meaningful
+
+
+def colour_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Largest per-channel difference (..., ) float32 between RGB arrays (..., 3), 0..255 units."""
     return np.abs(a.astype(np.int16) - b.astype(np.int16)).max(axis=-1).astype(np.float32)
 
 
-def _envelope(plate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def plate_envelope(plate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-channel 3x3 min and max of a plate: agreement tolerates a pixel of blur or misregistration."""
     k = np.ones((3, 3), np.uint8)
     return cv2.erode(plate, k), cv2.dilate(plate, k)
 
 
-def _range_dist(img: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+def range_dist(img: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Largest per-channel distance (..., ) float32 from ``img`` to the interval [lo, hi]."""
     i = img.astype(np.int16)
     d = np.maximum(lo.astype(np.int16) - i, i - hi.astype(np.int16))
     return np.maximum(d.max(axis=-1), 0).astype(np.float32)
 
 
-def _shadow_dist(img: np.ndarray, plate: np.ndarray) -> np.ndarray:
+def shadow_dist(img: np.ndarray, plate: np.ndarray) -> np.ndarray:
     """Distance (..., ) from ``img`` to the darkened plate ``g * plate`` (0.25 <= g <= 0.95) that fits it best."""
     i = img.astype(np.float32)
     p = plate.astype(np.float32)
@@ -56,11 +81,11 @@ def _shadow_dist(img: np.ndarray, plate: np.ndarray) -> np.ndarray:
     return np.abs(i - g[..., None] * p).max(axis=-1)
 
 
-_MAJOR = 0.002  # an object colour fills at least this share of the object's pixels (one bin)
+MAJOR_SHARE = 0.002  # an object colour fills at least this share of the object's pixels (one bin)
 _BIN = 8  # colour-set bins: 8 DN per channel (32^3 bins), one bin of slack around each seen colour
 
 
-def _colour_set(samples: np.ndarray, min_count: int = 2) -> np.ndarray:
+def colour_set(samples: np.ndarray, min_count: int = 2) -> np.ndarray:
     """(32, 32, 32) bool: the colours seen at least ``min_count`` times in ``samples`` (..., 3) uint8,
     grown by one bin (noise, a little shading)."""
     q = (samples.reshape(-1, 3) // _BIN).astype(np.intp)
@@ -70,13 +95,13 @@ def _colour_set(samples: np.ndarray, min_count: int = 2) -> np.ndarray:
     return binary_dilation(seen, np.ones((3, 3, 3), bool))
 
 
-def _in_set(img: np.ndarray, colours: np.ndarray) -> np.ndarray:
+def in_set(img: np.ndarray, colours: np.ndarray) -> np.ndarray:
     """(...) bool: whether each pixel of ``img`` (..., 3) uint8 has a colour of the set."""
     q = (img // _BIN).astype(np.intp)
     return colours[q[..., 0], q[..., 1], q[..., 2]]
 
 
-def _texture_match(img, plate: _Plate, tau) -> np.ndarray:
+def texture_match(img, plate: Plate, tau) -> np.ndarray:
     """(h, w) bool: the pixel's 3 x 3 neighbourhood reproduces the trusted table plate's texture there.
 
     Where the plate has texture (printed ink: its 3 x 3 grey-level spread is
@@ -97,18 +122,18 @@ def _texture_match(img, plate: _Plate, tau) -> np.ndarray:
     vg, vp = box(g * g) - mg * mg, box(p * p) - mp * mp
     cov = box(g * p) - mg * mp
     ncc = cov / np.sqrt(np.maximum(vg * vp, 1e-6))
-    near = _range_dist(img, plate.lo, plate.hi) < 3.0 * tau  # the pixel itself within the plate's range
+    near = range_dist(img, plate.lo, plate.hi) < 3.0 * tau  # the pixel itself within the plate's range
     return plate.trust & near & (vp > (2.0 * tau) ** 2) & (ncc > 0.8)
 
 
-def _doubtful(img, mask, region, ev: _Evidence, ink: np.ndarray, plates_only: bool) -> np.ndarray:
+def doubtful_pixels(img, mask, region, ev: Evidence, ink: np.ndarray, plates_only: bool) -> np.ndarray:
     """(h, w) bool: pixels of the region outside the mask that are not confidently background.
 
     Confident background is what the object cannot fake: a colour none of the
     object's that a trusted plate matches closely (its own colour, not just
     the range of a plate pixel's neighbourhood, which at an edge of the
     backdrop spans many colours), or the table plate's printed texture
-    reproduced (``ink``, see :func:`_texture_match`). A colour of the object's that
+    reproduced (``ink``, see :func:`texture_match`). A colour of the object's that
     matches a plate is doubtful (white object on white paper), and so is a
     mere darker copy of the plate (a shadow: it could be the dull side of a
     pale object). Where no plate is trusted, a colour none of the object's is
@@ -121,9 +146,9 @@ def _doubtful(img, mask, region, ev: _Evidence, ink: np.ndarray, plates_only: bo
     obj = mask | (region & ~ev.explained) if plates_only else mask
     # the object's colours: those of at least 0.2 % of its pixels (not a few dark crevices)
     n_obj = int(obj.sum())
-    object_colours = _colour_set(img[obj], min_count=max(3, int(_MAJOR * n_obj))) if n_obj >= 50 else \
+    object_colours = colour_set(img[obj], min_count=max(3, int(MAJOR_SHARE * n_obj))) if n_obj >= 50 else \
         np.zeros((32,) * 3, bool)
     known = ev.tight if plates_only else ev.tight | ~ev.trusted
-    confident = ~_in_set(img, object_colours) & known
+    confident = ~in_set(img, object_colours) & known
     confident |= ink
     return region & ~mask & ~confident

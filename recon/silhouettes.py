@@ -77,8 +77,8 @@ from calib.camera import as_K, as_poses, plane_homography, project_points
 from calib.target import TargetSpec
 
 from .silhouette_checks import camera_azimuths_deg, fill_gaps, frame_status
-from .silhouette_doubt import (_MAJOR, _colour_dist, _colour_set, _doubtful, _envelope, _in_set, _range_dist,
-                               _shadow_dist, _texture_match)
+from .silhouette_doubt import (MAJOR_SHARE, Evidence, Plate, colour_dist, colour_set, doubtful_pixels, in_set,
+                               plate_envelope, range_dist, shadow_dist, texture_match)
 
 __all__ = ["SilhouetteResult", "estimate_silhouettes", "cylinder_region", "rectify_to_table"]
 
@@ -235,8 +235,8 @@ def _table_plate(rect: np.ndarray, seen: np.ndarray, T: np.ndarray, tau: float, 
     bins[np.hypot(ii - c, jj - c) > radius_px] = nb  # beyond the volume: one group, every view
     least = min(V, max(5, int(math.ceil(V / 3))))
     full = _median_frames(rect)
-    lo_f, hi_f = _envelope(full)
-    agree = np.mean([_range_dist(r, lo_f, hi_f) < tau for r in rect], axis=0)
+    lo_f, hi_f = plate_envelope(full)
+    agree = np.mean([range_dist(r, lo_f, hi_f) < tau for r in rect], axis=0)
     all_seen = seen.all(axis=0)
     # where (nearly) every view agrees nothing hid the point: the arcs are needed only elsewhere
     doubt = (bins < nb) & (agree < 0.95)
@@ -252,31 +252,20 @@ def _table_plate(rect: np.ndarray, seen: np.ndarray, T: np.ndarray, tau: float, 
         frames_of.append((sel, pix))
         if pix.any():
             plate[pix] = _median_frames(rect[:, pix][sel])
-    changed = _colour_dist(plate, full) >= tau
+    changed = colour_dist(plate, full) >= tau
     if not changed.any():
         return full, lo_f, hi_f, ((agree >= _TRUST) & all_seen).astype(np.uint8)
-    lo, hi = _envelope(plate)
+    lo, hi = plate_envelope(plate)
     near = cv2.dilate(changed.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0  # the envelope changed there
     for sel, pix in frames_of:
         pix = pix & changed
         if pix.any():
-            agree[pix] = np.mean(_range_dist(rect[:, pix][sel], lo[pix], hi[pix]) < tau, axis=0)
+            agree[pix] = np.mean(range_dist(rect[:, pix][sel], lo[pix], hi[pix]) < tau, axis=0)
             all_seen[pix] = seen[:, pix][sel].all(axis=0)
     rest = near & ~changed  # the envelope moved under them: count all views again
     if rest.any():
-        agree[rest] = np.mean(_range_dist(rect[:, rest], lo[rest], hi[rest]) < tau, axis=0)
+        agree[rest] = np.mean(range_dist(rect[:, rest], lo[rest], hi[rest]) < tau, axis=0)
     return plate, lo, hi, ((agree >= _TRUST) & all_seen).astype(np.uint8)
-
-
-@dataclass(frozen=True)
-class _Plate:
-    """A background plate in the box of one frame: median, 3x3 envelope, where it is trusted."""
-
-    mid: np.ndarray  # (h, w, 3) uint8
-    lo: np.ndarray
-    hi: np.ndarray
-    trust: np.ndarray  # (h, w) bool
-    strong: np.ndarray  # (h, w) bool: background in nearly every frame
 
 
 class _Plates:
@@ -284,15 +273,15 @@ class _Plates:
 
     def __init__(self, crops, images, K, T, box, radius_mm, tau, inside, room_colours):
         room = _median_frames(crops)
-        lo, hi = _envelope(room)
-        agree = np.mean([_range_dist(c, lo, hi) < tau for c in crops], axis=0)
+        lo, hi = plate_envelope(room)
+        agree = np.mean([range_dist(c, lo, hi) < tau for c in crops], axis=0)
         # Inside the cylinder's image a static plate pixel may be a static object (a uniformly
         # coloured body of revolution looks the same in every frame): trust it as background only
         # where its colour is one the surroundings show outside the cylinder.
-        self.room = _Plate(room, lo, hi, agree >= _TRUST, agree >= _STRONG)
+        self.room = Plate(room, lo, hi, agree >= _TRUST, agree >= _STRONG)
         self.room_colours = room_colours
-        verified = ~inside | _in_set(room, room_colours)
-        self.room_verified = _Plate(room, lo, hi, self.room.trust & verified, self.room.strong & verified)
+        verified = ~inside | in_set(room, room_colours)
+        self.room_verified = Plate(room, lo, hi, self.room.trust & verified, self.room.strong & verified)
         self.plane_radius = radius_mm + _PLATE_BORDER_MM
         rect = np.stack([rectify_to_table(im, K, t, self.plane_radius, _PLANE_PX_PER_MM) for im, t in zip(images, T)])
         ones = np.ones(images.shape[1:3], np.uint8)
@@ -301,7 +290,7 @@ class _Plates:
                                                                                   radius_mm * _PLANE_PX_PER_MM)
         self.K, self.box = K, box
 
-    def table_in_frame(self, T: np.ndarray, size_hw) -> _Plate:
+    def table_in_frame(self, T: np.ndarray, size_hw) -> Plate:
         """The table plate warped into the box of frame ``T``."""
         h, w = size_hw
         y0, x0 = self.box
@@ -312,38 +301,24 @@ class _Plates:
                 for p in (self.table, self.table_lo, self.table_hi)]
         trust = cv2.warpPerspective(self.table_trust, M, (w, h), flags=cv2.INTER_NEAREST, borderValue=0) > 0
         trust &= _below_horizon(self.K, T, self.box, size_hw)
-        return _Plate(*warp, trust, trust)
+        return Plate(*warp, trust, trust)
 
 
-@dataclass(frozen=True)
-class _Evidence:
-    """What the plates say about the pixels (h, w) of one frame's box."""
-
-    labels: np.ndarray  # uint8 GrabCut labels
-    explained: np.ndarray  # bool: a trusted plate matches the pixel's colour (its 3x3 envelope)
-    tight: np.ndarray  # bool: ... and the plate's own colour there, within 2 tau (not loosely, at an edge)
-    shadow: np.ndarray  # bool: a darker copy of a trusted plate matches it
-    trusted: np.ndarray  # bool: some plate is trusted here
-    disagrees: np.ndarray  # bool: a trusted plate contradicts the pixel
-    background: np.ndarray  # (h, w, 3) uint8: the trusted plate's colour
-    usable: np.ndarray  # bool: where ``background`` is meaningful
-
-
-def _plate_distances(img, room: _Plate, table: _Plate) -> tuple[np.ndarray, ...]:
+def _plate_distances(img, room: Plate, table: Plate) -> tuple[np.ndarray, ...]:
     """Each pixel's colour distances to the room and table plates: (range, shadow, own colour) for each.
 
     They depend on the plates' colours only, not on where a plate is trusted, so
     :func:`_initial_labels` can judge one frame under two trust maps of the room plate
     (``room`` and ``room_verified`` share their colours) at the cost of one.
     """
-    return (_range_dist(img, room.lo, room.hi), _range_dist(img, table.lo, table.hi),
-            _shadow_dist(img, room.mid), _shadow_dist(img, table.mid),
-            _colour_dist(img, room.mid), _colour_dist(img, table.mid))
+    return (range_dist(img, room.lo, room.hi), range_dist(img, table.lo, table.hi),
+            shadow_dist(img, room.mid), shadow_dist(img, table.mid),
+            colour_dist(img, room.mid), colour_dist(img, table.mid))
 
 
-def _initial_labels(img, region, room: _Plate, table: _Plate, tau, room_colours,
-                    dist: tuple[np.ndarray, ...] | None = None, room_hard: np.ndarray | None = None) -> _Evidence:
-    """GrabCut labels from the plates, and what each pixel's plates say (:class:`_Evidence`).
+def _initial_labels(img, region, room: Plate, table: Plate, tau, room_colours,
+                    dist: tuple[np.ndarray, ...] | None = None, room_hard: np.ndarray | None = None) -> Evidence:
+    """GrabCut labels from the plates, and what each pixel's plates say (:class:`Evidence`).
 
     ``dist``: :func:`_plate_distances` of these plates' colours, when already computed.
 
@@ -368,15 +343,15 @@ def _initial_labels(img, region, room: _Plate, table: _Plate, tau, room_colours,
     # image) is taken as all colours.
     sure = trusted & (d > 3.0 * tau) & ~shadow
     if room_colours.mean() < _PLAIN_ROOM or room_colours.all():
-        sure &= ~_in_set(img, room_colours)
+        sure &= ~in_set(img, room_colours)
     # A darker copy of the table plate is a shadow on the paper for sure only in a colour the object
     # does not show: the shaded side of a grey or white object on white paper is a darker copy of
     # the paper too (white vase: the whole body below the horizon was taken for shadow).
     n_sure = int(sure.sum())
-    sure_colours = _colour_set(img[sure], min_count=max(3, int(_MAJOR * n_sure))) if n_sure >= 50 else None
+    sure_colours = colour_set(img[sure], min_count=max(3, int(MAJOR_SHARE * n_sure))) if n_sure >= 50 else None
     table_shadow = s_tab < tau
     if sure_colours is not None:
-        table_shadow &= ~_in_set(img, sure_colours)
+        table_shadow &= ~in_set(img, sure_colours)
     hard = (d_tab < tau) | table_shadow | ((d_room < tau) & (room.strong if room_hard is None else room_hard))
     k3 = np.ones((3, 3), np.uint8)
     labels = np.full(img.shape[:2], cv2.GC_PR_FGD, np.uint8)
@@ -388,7 +363,7 @@ def _initial_labels(img, region, room: _Plate, table: _Plate, tau, room_colours,
     usable = table.trust | (room.trust & ~table.trust)
     d_mid = np.where(table.trust, t_mid, np.where(room.trust, r_mid, np.inf))
     tight = explained & (d_mid < 2.0 * tau)
-    return _Evidence(labels, explained, tight, shadow, trusted, trusted & (d > tau) & ~shadow, background, usable)
+    return Evidence(labels, explained, tight, shadow, trusted, trusted & (d > tau) & ~shadow, background, usable)
 
 
 def _grabcut(img, labels, iterations: int = 2) -> np.ndarray:
@@ -496,7 +471,7 @@ def _object_colour_near(img: np.ndarray, mask: np.ndarray, size: int = 11) -> tu
     return F / np.maximum(weight, 1e-6)[..., None], weight > 0.5
 
 
-def _outline_support(img, mask, ev: _Evidence, tau) -> float:
+def _outline_support(img, mask, ev: Evidence, tau) -> float:
     """Fraction of the ring two pixels outside the outline that is clearly background.
 
     A ring pixel supports the outline when it differs by more than ``3 tau``
@@ -521,7 +496,7 @@ def _outline_support(img, mask, ev: _Evidence, tau) -> float:
 @dataclass(frozen=True)
 class _FrameOut:
     mask: np.ndarray  # (h, w) bool
-    doubtful: np.ndarray  # (h, w) bool, see _doubtful
+    doubtful: np.ndarray  # (h, w) bool, see doubtful_pixels
     doubtful_strict: np.ndarray  # (h, w) bool, the same with plates_only (for a conservative frame)
     support: float  # see _outline_support
 
@@ -551,16 +526,16 @@ def _frame_mask(img, region, base, plates: _Plates, T, tau, verified: bool) -> _
     # the object itself where that covers the same pixels in most frames.
     ev_v = ev if verified else _initial_labels(img, region, plates.room_verified, table, tau, plates.room_colours,
                                                dist)
-    ink = _texture_match(img, table, tau)
-    return _FrameOut(mask, _doubtful(img, mask, region, ev_v, ink, False), _doubtful(img, mask, region, ev_v, ink, True),
-                     _outline_support(img, mask, ev, tau))
+    ink = texture_match(img, table, tau)
+    return _FrameOut(mask, doubtful_pixels(img, mask, region, ev_v, ink, False),
+                     doubtful_pixels(img, mask, region, ev_v, ink, True), _outline_support(img, mask, ev, tau))
 
 
 def _noise_tau(samples: np.ndarray) -> float:
     """Agreement threshold from pixels that are background for sure (V, N, 3): 1.5 x the 95th
     percentile of their distance to the median, per frame, median over frames (a bad frame cannot
     inflate it), at least ``_MIN_TAU``."""
-    far = _colour_dist(samples, _median_frames(samples))
+    far = colour_dist(samples, _median_frames(samples))
     return max(_MIN_TAU, 1.5 * float(np.median(np.percentile(far, 95, axis=1))))
 
 
@@ -618,7 +593,7 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
     tau = _noise_tau(samples) if outside.sum() >= 100 else _MIN_TAU
     # the room's colours: outside the volume and off the table top around it (the paper is the table's)
     room = outside & ~np.any([cylinder_region(K, t, (W, H), radius + _PLATE_BORDER_MM, 0.0) for t in T], axis=0)
-    room_colours = _colour_set(imgs[:, room][:, ::7]) if room.sum() >= 100 else np.ones((32, 32, 32), bool)
+    room_colours = colour_set(imgs[:, room][:, ::7]) if room.sum() >= 100 else np.ones((32, 32, 32), bool)
     plates = _Plates(crops, imgs, K, T, (y0, x0), radius, tau, union[y0:y1, x0:x1], room_colours)
     box = (slice(y0, y1), slice(x0, x1))
     bases = [cylinder_region(K, t, (W, H), radius, 0.0)[box] for t in T]
