@@ -302,3 +302,9 @@ def test_uniform_albedo_renders_one_colour(tmp_path):
     import trimesh
     gt = trimesh.load_mesh(out / "object_gt.ply")
     assert (np.asarray(gt.visual.vertex_colors)[:, :3] == np.round(np.array(rgb) * 255)).all()
+
+
+def test_pixel_rays_reject_wrong_point_shapes():
+    K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
+    with pytest.raises(ValueError, match=r"uv_px must be \(N, 2\), got \(2, 5\)"):
+        pixel_rays_cam(K, np.zeros((2, 5)))

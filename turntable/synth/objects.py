@@ -31,6 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from calib.types import as_points
+
 __all__ = ["OBJECT_NAMES", "ProceduralTexture", "make_object", "load_object", "procedural_colors", "fit_to_footprint"]
 
 OBJECT_NAMES = ("vase", "cup", "chair", "figure")
@@ -90,7 +92,7 @@ class ProceduralTexture:
 
     def __call__(self, pts_obj: np.ndarray) -> np.ndarray:
         """sRGB colours (N, 3) float32 in [0, 1] at object points ``pts_obj`` (N, 3) mm."""
-        pts = np.asarray(pts_obj, dtype=np.float64).reshape(-1, 3)
+        pts = as_points(pts_obj, 3, "pts_obj")
         q = pts + self.offset_mm
         n = (0.5 * _value_noise(q, self.perm, self.values, 14.0) + 0.3 * _value_noise(q, self.perm, self.values, 6.0)
              + 0.2 * _value_noise(q, self.perm, self.values, 2.5))
@@ -111,7 +113,7 @@ class UniformAlbedo:
 
     def __call__(self, pts_obj: np.ndarray) -> np.ndarray:
         """sRGB colours (N, 3) float32 in [0, 1] at object points ``pts_obj`` (N, 3) mm."""
-        n = len(np.asarray(pts_obj).reshape(-1, 3))
+        n = len(as_points(pts_obj, 3, "pts_obj"))
         return np.tile(np.asarray(self.rgb, np.float32), (n, 1))
 
 

@@ -30,8 +30,9 @@ import numpy as np
 import open3d as o3d
 
 from calib.camera import invert_T
+from calib.types import as_points
 
-from .scene import _ROOM_HEIGHT_MM, _WALL_MM_PER_PX, BACKDROPS, SynthScene, _srgb_to_linear, build_scene
+from .scene import BACKDROPS, ROOM_HEIGHT_MM, WALL_MM_PER_PX, SynthScene, build_scene, gamma22_to_linear
 
 __all__ = ["SynthScene", "build_scene", "render_view", "pixel_rays_cam", "undistort_normalized",
            "BACKDROPS"]
@@ -47,7 +48,7 @@ def undistort_normalized(uv_px: np.ndarray, K: np.ndarray, dist=None, iterations
     tangential) by Newton's method from the distorted point; exact to ~1e-12
     for distortions a lens can have (the map must be monotonic over the image).
     """
-    uv = np.asarray(uv_px, dtype=np.float64).reshape(-1, 2)
+    uv = as_points(uv_px, 2, "uv_px")
     K = np.asarray(K, float)
     yd = (uv[:, 1] - K[1, 2]) / K[1, 1]
     xd = (uv[:, 0] - K[0, 2] - K[0, 1] * yd) / K[0, 0]
@@ -140,7 +141,7 @@ def _object_surface(scene: SynthScene, prim: np.ndarray, bary_uv: np.ndarray, p_
         rgb = scene.albedo(p_table)
     else:
         rgb = np.einsum("kj,kjc->kc", w, scene.vertex_rgb[f])
-    return _srgb_to_linear(rgb), n.astype(np.float32)
+    return gamma22_to_linear(rgb), n.astype(np.float32)
 
 
 def _room_albedo(scene: SynthScene, p_world: np.ndarray, gid: np.ndarray) -> np.ndarray:
@@ -155,8 +156,8 @@ def _room_albedo(scene: SynthScene, p_world: np.ndarray, gid: np.ndarray) -> np.
     h, w = scene.wall_linear.shape[:2]
     col = (np.arctan2(pw[:, 2], pw[:, 0]) + np.pi) / (2 * np.pi) * w
     flat = gid[~is_floor] == scene.backdrop_id  # flat backdrop: columns along X
-    col[flat] = pw[flat, 0] / _WALL_MM_PER_PX + 0.25 * w
-    row = (_ROOM_HEIGHT_MM - pw[:, 1]) / _WALL_MM_PER_PX
+    col[flat] = pw[flat, 0] / WALL_MM_PER_PX + 0.25 * w
+    row = (ROOM_HEIGHT_MM - pw[:, 1]) / WALL_MM_PER_PX
     rgb[~is_floor] = _bilinear(scene.wall_linear, row, np.mod(col, w - 1))
     return rgb
 
@@ -286,6 +287,7 @@ def _needs_aa(cls: np.ndarray, srgb: np.ndarray) -> np.ndarray:
 
 
 def _encode_srgb(lin: np.ndarray) -> np.ndarray:
+    """Linear light -> uint8 by the power 1/2.2 (the inverse of :func:`gamma22_to_linear`), through a LUT."""
     lut = np.round(np.power(np.linspace(0.0, 1.0, 4096), 1.0 / 2.2) * 255.0).astype(np.uint8)
     return lut[np.clip(np.round(lin * 4095.0), 0, 4095).astype(np.int64)]
 

@@ -24,14 +24,15 @@ import trimesh
 from calib.target import TargetSpec
 from turntable.pattern import render_target_image
 
-__all__ = ["SynthScene", "build_scene", "BACKDROPS"]
+__all__ = ["SynthScene", "build_scene", "BACKDROPS", "DISC_THICKNESS_MM", "ROOM_HEIGHT_MM", "WALL_MM_PER_PX",
+           "gamma22_to_linear"]
 
 BACKDROPS = ("dark", "light", "colour", "clutter")
 
-_DISC_THICKNESS_MM = 15.0
+DISC_THICKNESS_MM = 15.0
 _ROOM_RADIUS_MM = 700.0  # default radius of the round wall
-_ROOM_HEIGHT_MM = 2000.0
-_WALL_MM_PER_PX = 2.0
+ROOM_HEIGHT_MM = 2000.0
+WALL_MM_PER_PX = 2.0
 
 
 @dataclass(frozen=True)
@@ -113,8 +114,8 @@ def _cylinder(radius: float, y0: float, y1: float, n: int, caps: bool) -> tuple[
 
 
 def _wall_image(backdrop: str, rng: np.random.Generator) -> np.ndarray:
-    """sRGB wall texture (h, w, 3) float32, ``_WALL_MM_PER_PX`` mm per pixel, unwrapped cylinder."""
-    h, w = int(_ROOM_HEIGHT_MM / _WALL_MM_PER_PX), int(2 * np.pi * _ROOM_RADIUS_MM / _WALL_MM_PER_PX)
+    """Display-encoded (gamma 2.2) wall texture (h, w, 3) float32, ``WALL_MM_PER_PX`` mm a pixel, unwrapped cylinder."""
+    h, w = int(ROOM_HEIGHT_MM / WALL_MM_PER_PX), int(2 * np.pi * _ROOM_RADIUS_MM / WALL_MM_PER_PX)
     noise = cv2.GaussianBlur(rng.standard_normal((h, w)).astype(np.float32), (0, 0), 6.0)
     if backdrop == "dark":
         base = np.array([0.07, 0.07, 0.075])
@@ -145,7 +146,14 @@ def _wall_image(backdrop: str, rng: np.random.Generator) -> np.ndarray:
     return np.clip(img, 0, 1).astype(np.float32)
 
 
-def _srgb_to_linear(x: np.ndarray) -> np.ndarray:
+def gamma22_to_linear(x: np.ndarray) -> np.ndarray:
+    """Display values in [0, 1] (clipped) -> linear light by a pure power 2.2, float32.
+
+    The renderer's own transfer curve (its inverse encodes the images), not the
+    piecewise IEC 61966-2-1 sRGB curve of :func:`recon.export.srgb_to_linear`:
+    the two differ by up to 0.0085 (near 0.75), and the rendered pixels depend
+    on this one.
+    """
     return np.power(np.clip(x, 0.0, 1.0), 2.2).astype(np.float32)
 
 
@@ -200,7 +208,7 @@ def _disc_top_texture(spec: TargetSpec, px_per_mm: float, paper_r: float, disc_r
     ground = np.array([1.0, 0.99, 0.96], np.float32) * (np.asarray(ground_rgb, np.float32) / 255.0)
     paper_rgb = (paper * fibre / 255.0 * 0.92)[..., None] * ground
     alpha = np.clip((paper_r - r) * px_per_mm + 0.5, 0.0, 1.0)[..., None]
-    return _srgb_to_linear(alpha * paper_rgb + (1.0 - alpha) * img)
+    return gamma22_to_linear(alpha * paper_rgb + (1.0 - alpha) * img)
 
 
 def _floor_texture(rng: np.random.Generator, half_mm: float, px_per_mm: float) -> np.ndarray:
@@ -210,7 +218,7 @@ def _floor_texture(rng: np.random.Generator, half_mm: float, px_per_mm: float) -
     warp = _blur_noise(rng, (size, size), 12.0 * px_per_mm)
     grain = 0.5 + 0.5 * np.sin(z[:, None] / 2.5 + 1.2 * warp)
     base = np.clip(np.array([0.55, 0.4, 0.27]) * rng.uniform(0.8, 1.15, 3), 0, 1).astype(np.float32)
-    return _srgb_to_linear((0.8 + 0.2 * grain)[..., None] * base)
+    return gamma22_to_linear((0.8 + 0.2 * grain)[..., None] * base)
 
 
 def build_scene(mesh: trimesh.Trimesh, spec: TargetSpec, backdrop: str = "dark", *,
@@ -258,30 +266,30 @@ def build_scene(mesh: trimesh.Trimesh, spec: TargetSpec, backdrop: str = "dark",
     V = np.asarray(mesh.vertices, np.float32)
     F = np.asarray(mesh.faces, np.int64)
     object_id = tt.add_triangles(o3d.core.Tensor(V), o3d.core.Tensor(F.astype(np.uint32)))
-    dv, df = _cylinder(disc_r, -_DISC_THICKNESS_MM, 0.0, 256, caps=True)
+    dv, df = _cylinder(disc_r, -DISC_THICKNESS_MM, 0.0, 256, caps=True)
     disc_id = tt.add_triangles(o3d.core.Tensor(dv), o3d.core.Tensor(df))
 
     room = o3d.t.geometry.RaycastingScene()
     if not room_radius_mm > disc_r + 50.0:
         raise ValueError(f"room radius {room_radius_mm} mm leaves no room around the turntable")
     R = room_radius_mm * 1.2
-    fv = np.array([[-R, -_DISC_THICKNESS_MM, -R], [R, -_DISC_THICKNESS_MM, -R], [R, -_DISC_THICKNESS_MM, R],
-                   [-R, -_DISC_THICKNESS_MM, R]], np.float32)
+    fv = np.array([[-R, -DISC_THICKNESS_MM, -R], [R, -DISC_THICKNESS_MM, -R], [R, -DISC_THICKNESS_MM, R],
+                   [-R, -DISC_THICKNESS_MM, R]], np.float32)
     floor_id = room.add_triangles(o3d.core.Tensor(fv), o3d.core.Tensor(np.array([[0, 2, 1], [0, 3, 2]], np.uint32)))
-    wv, wf = _cylinder(room_radius_mm, -_DISC_THICKNESS_MM - 1.0, _ROOM_HEIGHT_MM, 512, caps=False)
+    wv, wf = _cylinder(room_radius_mm, -DISC_THICKNESS_MM - 1.0, ROOM_HEIGHT_MM, 512, caps=False)
     wall_id = room.add_triangles(o3d.core.Tensor(wv), o3d.core.Tensor(wf))
     backdrop_id = -1
     if backdrop_distance_mm is not None:
         zb = -float(backdrop_distance_mm)
-        bv = np.array([[-R, -_DISC_THICKNESS_MM - 1.0, zb], [R, -_DISC_THICKNESS_MM - 1.0, zb],
-                       [R, _ROOM_HEIGHT_MM, zb], [-R, _ROOM_HEIGHT_MM, zb]], np.float32)
+        bv = np.array([[-R, -DISC_THICKNESS_MM - 1.0, zb], [R, -DISC_THICKNESS_MM - 1.0, zb],
+                       [R, ROOM_HEIGHT_MM, zb], [-R, ROOM_HEIGHT_MM, zb]], np.float32)
         backdrop_id = int(room.add_triangles(o3d.core.Tensor(bv),
                                              o3d.core.Tensor(np.array([[0, 1, 2], [0, 2, 3]], np.uint32))))
 
     tm = trimesh.Trimesh(V, F, process=False)
     colors = np.asarray(mesh.visual.vertex_colors)[:, :3] if mesh.visual.kind == "vertex" else np.full((len(V), 3), 180)
     light = np.asarray(light_dir_world, float)
-    side = _srgb_to_linear(np.array([0.25, 0.24, 0.26]) * rng.uniform(0.8, 1.1, 3))
+    side = gamma22_to_linear(np.array([0.25, 0.24, 0.26]) * rng.uniform(0.8, 1.1, 3))
     floor_ppm = min(1.0, 2000.0 / (2.0 * R))  # at most a 2000^2 raster
     return SynthScene(
         turntable=tt, room=room, object_id=int(object_id), disc_id=int(disc_id), floor_id=int(floor_id),
@@ -290,5 +298,5 @@ def build_scene(mesh: trimesh.Trimesh, spec: TargetSpec, backdrop: str = "dark",
         vertex_rgb=(colors / 255.0).astype(np.float32), albedo=mesh.metadata.get("albedo"),
         disc_top_linear=disc_top, disc_top_px_per_mm=float(target_px_per_mm), disc_side_linear=side,
         floor_linear=_floor_texture(rng, R, floor_ppm), floor_px_per_mm=floor_ppm,
-        wall_linear=_srgb_to_linear(_wall_image(backdrop, rng)), paper_radius_mm=float(paper_r),
+        wall_linear=gamma22_to_linear(_wall_image(backdrop, rng)), paper_radius_mm=float(paper_r),
         disc_radius_mm=float(disc_r), light_dir_world=light / np.linalg.norm(light))

@@ -54,7 +54,7 @@ from turntable.pattern import parse_background
 
 from .objects import OBJECT_NAMES, load_object, make_object, with_uniform_albedo
 from .render import render_view
-from .scene import _DISC_THICKNESS_MM, BACKDROPS, build_scene
+from .scene import BACKDROPS, DISC_THICKNESS_MM, build_scene
 
 __all__ = ["SynthOptions", "make_sequence", "camera_poses", "look_at", "rot_y"]
 
@@ -312,7 +312,7 @@ def make_sequence(out_dir: str | os.PathLike, options: SynthOptions, overwrite: 
             "target_background_rgb": list(parse_background(options.target_background)),
             "paper_radius_mm": scene.paper_radius_mm,
             "disc_radius_mm": scene.disc_radius_mm,
-            "disc_thickness_mm": _DISC_THICKNESS_MM,
+            "disc_thickness_mm": DISC_THICKNESS_MM,
             "backdrop_distance_mm": backdrop_mm,
             "room_radius_mm": room_mm,
             "target_px_per_mm": ppm,
