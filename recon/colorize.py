@@ -34,6 +34,7 @@ import trimesh
 
 from calib.camera import as_K, as_poses
 
+from .raycast import first_hits, raycasting_scene
 from .types import TableMesh
 
 __all__ = ["color_vertices", "visible_vertices"]
@@ -97,7 +98,7 @@ def color_vertices(
     n_views = len(images)
     samples = np.zeros((len(V), n_views, 3), dtype=np.float32)
     weights = np.zeros((len(V), n_views), dtype=np.float32)
-    scene = _scene(V, F)
+    scene = raycasting_scene(V, F)
     for k in range(n_views):
         idx, uv, w = _view_samples(scene, V, normals, K, poses[k], images[k].shape[:2],
                                    None if masks_ is None else masks_[k], min_cos, tol)
@@ -132,7 +133,7 @@ def visible_vertices(
     T = np.asarray(T_cam_table, dtype=np.float64)
     if T.shape != (4, 4):
         raise ValueError(f"T_cam_table: expected (4, 4), got {T.shape}")
-    idx, _, _ = _view_samples(_scene(V, F), V, _normals(mesh), as_K(K), T,
+    idx, _, _ = _view_samples(raycasting_scene(V, F), V, _normals(mesh), as_K(K), T,
                               tuple(image_size_hw), None, min_cos, tol)
     out = np.zeros(len(V), dtype=bool)
     out[idx] = True
@@ -169,14 +170,6 @@ def _default_tol(V: np.ndarray, F: np.ndarray) -> float:
     return float(np.median(np.linalg.norm(e, axis=2)))
 
 
-def _scene(V: np.ndarray, F: np.ndarray):
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32)))
-    return scene
-
-
 def _view_samples(scene, V, normals, K, T, hw, mask, min_cos, tol):
     """Indices (n,), pixel positions ``uv_px`` (n, 2) and weights (n,) of the cleanly seen vertices."""
     H, W = hw
@@ -206,13 +199,11 @@ def _view_samples(scene, V, normals, K, T, hw, mask, min_cos, tol):
 
 def _unoccluded(scene, C, pts_table, d, tol):
     """(n,) bool: the first hit of the ray from ``C`` towards each point lies within ``tol`` of it."""
-    import open3d as o3d
-
     # Unnormalised direction: the point sits at t = 1, the first hit at t_hit.
     rays = np.empty((len(pts_table), 6), dtype=np.float32)
     rays[:, :3] = C
     rays[:, 3:] = pts_table - C
-    t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    t_hit = first_hits(scene, rays)
     return (1.0 - t_hit) * d < tol
 
 
@@ -224,8 +215,6 @@ def _clean_footprint(scene, C, R, K, uv_px, z, cos, W, H, tol):
     tilted by θ over ~1.5 pixels (``1.5 z tan θ / f``). Rejects samples that
     would blend in background (ray misses) or an occluding edge.
     """
-    import open3d as o3d
-
     u0, v0 = _footprint(uv_px, W, H)
     # Neighbouring vertices share pixels: cast each pixel's ray once.
     pixel = ((v0[:, None] + np.array([0, 0, 1, 1])) * W + (u0[:, None] + np.array([0, 1, 0, 1]))).ravel()
@@ -237,7 +226,7 @@ def _clean_footprint(scene, C, R, K, uv_px, z, cos, W, H, tol):
     rays = np.empty((len(unique), 6), dtype=np.float32)
     rays[:, :3] = C
     rays[:, 3:] = u[:, None] * M[:, 0] + v[:, None] * M[:, 1] + M[:, 2]
-    z_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()[inverse].reshape(-1, 4)
+    z_hit = first_hits(scene, rays)[inverse].reshape(-1, 4)
     tan = np.sqrt(np.maximum(1.0 - cos**2, 0.0)) / cos
     allow = tol + 1.5 * z * tan / K[0, 0]
     return np.all(np.abs(z_hit - z[:, None]) < allow[:, None], axis=1)

@@ -38,6 +38,9 @@ import numpy as np
 import trimesh
 from skimage import measure
 
+from calib.types import as_points
+
+from .raycast import raycasting_scene
 from .types import TableMesh, VoxelHull
 
 __all__ = ["MeshStats", "mesh_from_hull", "finalize_mesh", "remesh_watertight", "mesh_stats", "clip_to_hull",
@@ -330,11 +333,12 @@ def remesh_watertight(vertices_table: np.ndarray, faces: np.ndarray, max_faces: 
     """
     import open3d as o3d
 
-    V = np.asarray(vertices_table, dtype=np.float64)
+    V = as_points(vertices_table, 3, "vertices_table")
     F = np.asarray(faces, dtype=np.int64)
+    if F.ndim != 2 or F.shape[1] != 3:
+        raise ValueError(f"faces must be (M, 3), got {F.shape}")
     area = float(trimesh.Trimesh(V, F, process=False).area)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32)))
+    scene = raycasting_scene(V, F)
     voxel = np.sqrt(_MC_FACES_PER_AREA * area / max_faces)
     lo, hi = V.min(axis=0), V.max(axis=0)
     for _ in range(20):

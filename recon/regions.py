@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from .raycast import pixel_rays_table, render_depth
 from .types import DepthMap, VoxelHull
 
 __all__ = ["RegionChoice", "choose_regions", "supported_field"]
@@ -88,9 +89,6 @@ def _region_labels(carved: np.ndarray, voxel_mm: float, region_mm: float) -> tup
 
 def _judge(labels, n, hull, hull_vf, fused_vf, depths, masks, K, Ts, min_confidence, delta_mm, cap_mm, stride):
     """Per region (arrays of n + 1): summed hull error, summed fused error, judged pixels, see-through pixels."""
-    from .stereo import pixel_rays_table
-    from .surface import _render_depth
-
     near = ndimage.maximum_filter(labels, size=5)  # a hull hit lies within a voxel or two of its region
     Ks = np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(K, float)
     origin, vox = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
@@ -98,8 +96,8 @@ def _judge(labels, n, hull, hull_vf, fused_vf, depths, masks, K, Ts, min_confide
     for dm, T, m in zip(depths, Ts, masks if masks is not None else [None] * len(Ts)):
         d = np.where(dm.confidence >= min_confidence, dm.depth_mm, 0.0)[::stride, ::stride]
         size = (d.shape[1], d.shape[0])
-        r_h = _render_depth(*hull_vf, Ks, T, size)
-        r_f = _render_depth(*fused_vf, Ks, T, size)
+        r_h = render_depth(*hull_vf, Ks, T, size)
+        r_f = render_depth(*fused_vf, Ks, T, size)
         # the fused surface lets this view see through where its silhouette or its stereo saw the
         # object (the hull alone is no proof: it can be larger than every silhouette)
         seen = d > 0

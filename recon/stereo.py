@@ -30,6 +30,7 @@ from collections.abc import Callable, Sequence
 import cv2
 import numpy as np
 
+from .raycast import first_hits, pixel_rays_table, raycasting_scene
 from .types import DepthMap, TableMesh, VoxelHull
 
 __all__ = ["depth_maps", "hull_depth_range", "hull_mesh", "select_neighbours", "pixel_rays_table"]
@@ -62,21 +63,6 @@ def _as_mesh(hull_or_mesh) -> tuple[np.ndarray, np.ndarray]:
     raise ValueError("expected a VoxelHull, a TableMesh or (vertices_table, faces)")
 
 
-def pixel_rays_table(K: np.ndarray, T_cam_table: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Camera centre (3,) and per-pixel ray directions (H, W, 3) in the table frame.
-
-    Directions are scaled so that their camera-frame z is 1: a distance ``t``
-    along them is the z-depth ``t`` mm.
-    """
-    W, H = int(size[0]), int(size[1])
-    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
-    pix = np.stack([u, v, np.ones_like(u)], axis=-1)
-    d_cam = pix @ np.linalg.inv(K).T
-    R = T_cam_table[:3, :3]
-    centre = -R.T @ T_cam_table[:3, 3]
-    return centre, d_cam @ R  # rows: R^T d
-
-
 def hull_depth_range(hull_or_mesh, K: np.ndarray, T_cam_table: Sequence[np.ndarray] | np.ndarray,
                      size: tuple[int, int], *, margin_mm: float = 0.0,
                      scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
@@ -104,13 +90,10 @@ def hull_depth_range(hull_or_mesh, K: np.ndarray, T_cam_table: Sequence[np.ndarr
         z-depth (mm, camera frame) of the first entry into and the last exit
         from the hull; 0 for rays that miss it.
     """
-    import open3d as o3d
-
     K = np.asarray(K, dtype=np.float64)
     Ts = np.asarray(T_cam_table, dtype=np.float64).reshape(-1, 4, 4)
     verts, faces = _as_mesh(hull_or_mesh)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(verts.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
+    scene = raycasting_scene(verts, faces)
     if not 0.0 < scale <= 1.0:
         raise ValueError(f"scale must be in (0, 1], got {scale}")
     W, H = int(size[0]), int(size[1])
@@ -133,9 +116,9 @@ def hull_depth_range(hull_or_mesh, K: np.ndarray, T_cam_table: Sequence[np.ndarr
             # farthest possible depth: bounding-box corners in the camera frame
             t_far = float((corners @ T[:3, :3].T + T[:3, 3])[:, 2].max()) + 10.0
             rays = np.concatenate([np.broadcast_to(centre, dirs.shape), dirs], axis=-1).astype(np.float32)
-            t1 = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+            t1 = first_hits(scene, rays)
             back = np.concatenate([centre + dirs * t_far, -dirs], axis=-1).astype(np.float32)
-            t2 = scene.cast_rays(o3d.core.Tensor(back))["t_hit"].numpy()
+            t2 = first_hits(scene, back)
             hit = np.isfinite(t1) & np.isfinite(t2)
             n_i[ys, xs] = np.where(hit, np.maximum(t1 - margin_mm, 1e-3), 0.0)
             f_i[ys, xs] = np.where(hit, t_far - t2 + margin_mm, 0.0)

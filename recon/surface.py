@@ -57,6 +57,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from .raycast import render_depth
 from .types import DepthMap, FusedPoints, VoxelHull
 
 __all__ = ["fused_field", "fused_surface", "splat_depth", "compare_to_hull", "HullComparison"]
@@ -355,18 +356,6 @@ class HullComparison:
     use_fused: bool
 
 
-def _render_depth(verts, faces, K, T, size):
-    from .stereo import pixel_rays_table
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.asarray(verts, np.float32)), o3d.core.Tensor(np.asarray(faces, np.uint32)))
-    centre, dirs = pixel_rays_table(K, T, size)
-    rays = np.concatenate([np.broadcast_to(centre, dirs.shape), dirs], -1).astype(np.float32)
-    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-    return np.where(np.isfinite(t), t, 0.0)
-
-
 def compare_to_hull(hull_mesh_vf: tuple[np.ndarray, np.ndarray], fused_mesh_vf: tuple[np.ndarray, np.ndarray],
                     depths: Sequence[DepthMap], K: np.ndarray, T_cam_table: Sequence[np.ndarray] | np.ndarray, *,
                     min_confidence: float = 0.5, delta_mm: float = 1.0, cap_mm: float = 10.0,
@@ -393,8 +382,8 @@ def compare_to_hull(hull_mesh_vf: tuple[np.ndarray, np.ndarray], fused_mesh_vf: 
     for dm, T in zip(depths, Ts):
         d = np.where(dm.confidence >= min_confidence, dm.depth_mm, 0.0)[::stride, ::stride]
         size = (d.shape[1], d.shape[0])
-        r_h = _render_depth(*hull_mesh_vf, Ks, T, size)
-        r_f = _render_depth(*fused_mesh_vf, Ks, T, size)
+        r_h = render_depth(*hull_mesh_vf, Ks, T, size)
+        r_f = render_depth(*fused_mesh_vf, Ks, T, size)
         sel = (d > 0) & (np.abs(r_h - r_f) > delta_mm)
         for out, r in ((e_h, r_h[sel]), (e_f, r_f[sel])):
             out.append(np.where(r > 0, np.minimum(np.abs(r - d[sel]), cap_mm), cap_mm))

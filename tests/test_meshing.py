@@ -284,3 +284,10 @@ def test_clip_to_hull_pulls_decimated_vertices_back_inside():
     move = np.linalg.norm(clipped.vertices_table - mesh.vertices_table, axis=1)
     assert move.max() < voxel
     assert np.all(move[radii(mesh, centre) <= R - 1e-6] == 0)
+
+
+def test_remesh_watertight_rejects_wrong_shapes():
+    with pytest.raises(ValueError, match=r"vertices_table must be \(N, 3\), got \(4, 2\)"):
+        remesh_watertight(np.zeros((4, 2)), np.array([[0, 1, 2], [0, 2, 3]]), 100)
+    with pytest.raises(ValueError, match=r"faces must be \(M, 3\), got \(6,\)"):
+        remesh_watertight(np.zeros((4, 3)), np.arange(6), 100)
