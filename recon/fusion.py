@@ -20,14 +20,44 @@ is at half resolution, so ``stride=2`` loses nothing and quarters the work.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from .stereo import select_neighbours
 from .types import DepthMap, FusedPoints
 
-__all__ = ["fuse_depths", "ViewSamples", "view_samples"]
+__all__ = ["FusionOptions", "fuse_depths", "ViewSamples", "view_samples"]
+
+
+@dataclass(frozen=True)
+class FusionOptions:
+    """Settings of :func:`fuse_depths`.
+
+    Attributes
+    ----------
+    min_views : int
+        Views (the pixel's own included) that must agree.
+    tol_mm, max_normal_deg : float
+        Agreement in depth (mm, along the other view's axis) and normal.
+    min_confidence : float
+        Depth pixels below this confidence are ignored.
+    check_neighbours : int
+        Each pixel is checked in the ``2 * check_neighbours`` angularly
+        nearest views.
+    stride : int
+        Pixel step of the check (2 matches a half-resolution sweep).
+    voxel_mm : float
+        Merge grid; 0 keeps every surviving pixel.
+    """
+
+    min_views: int = 3
+    tol_mm: float = 1.5
+    max_normal_deg: float = 30.0
+    min_confidence: float = 0.2
+    check_neighbours: int = 4
+    stride: int = 2
+    voxel_mm: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -108,7 +138,10 @@ def _agree(pts_table, normals, vs: ViewSamples, tol_mm: float, cos_max: float):
     return ok, yi, xi
 
 
-def _fuse_view(r, samples, check, images_rgb, stride, min_views, tol_mm, cos_max):
+def _fuse_view(r, samples, check, images_rgb, o: FusionOptions):
+    """View ``r``'s pixels that ``o.min_views`` views agree on: (points, unit normals, rgb), each (n, 3); or None."""
+    stride, min_views, tol_mm = o.stride, o.min_views, o.tol_mm
+    cos_max = float(np.cos(np.radians(o.max_normal_deg)))
     vs = samples[r]
     ys, xs = np.nonzero((vs.depth_mm > 0) & np.isfinite(vs.normals_table[..., 0]))
     if len(ys) == 0:
@@ -132,10 +165,8 @@ def _fuse_view(r, samples, check, images_rgb, stride, min_views, tol_mm, cos_max
 
 
 def fuse_depths(depths: Sequence[DepthMap], images_rgb: Sequence[np.ndarray], K: np.ndarray,
-                T_cam_table: Sequence[np.ndarray] | np.ndarray, *, min_views: int = 3, tol_mm: float = 1.5,
-                max_normal_deg: float = 30.0, min_confidence: float = 0.2, check_neighbours: int = 4,
-                stride: int = 2, voxel_mm: float = 0.5,
-                progress: Callable[[int, int], None] | None = None) -> FusedPoints:
+                T_cam_table: Sequence[np.ndarray] | np.ndarray, *, options: FusionOptions | None = None,
+                progress: Callable[[int, int], None] | None = None, **overrides) -> FusedPoints:
     """Consistency-checked, merged point cloud of all depth maps.
 
     Parameters
@@ -148,19 +179,11 @@ def fuse_depths(depths: Sequence[DepthMap], images_rgb: Sequence[np.ndarray], K:
         Intrinsics of the (H, W) images.
     T_cam_table : (V, 4, 4) float64
         Poses, table mm -> camera mm.
-    min_views : int
-        Views (the pixel's own included) that must agree.
-    tol_mm, max_normal_deg : float
-        Agreement in depth (mm, along the other view's axis) and normal.
-    min_confidence : float
-        Depth pixels below this confidence are ignored.
-    check_neighbours : int
-        Each pixel is checked in the ``2 * check_neighbours`` angularly
-        nearest views.
-    stride : int
-        Pixel step of the check (2 matches a half-resolution sweep).
-    voxel_mm : float
-        Merge grid; 0 keeps every surviving pixel.
+    options : FusionOptions, optional
+        The check's settings; default ``FusionOptions()``.
+    **overrides
+        Fields of :class:`FusionOptions` by name (``min_views=2``), replacing
+        those of ``options``.
 
     Returns
     -------
@@ -168,17 +191,17 @@ def fuse_depths(depths: Sequence[DepthMap], images_rgb: Sequence[np.ndarray], K:
         Table-frame points (mm), unit normals towards the observing cameras,
         colours.
     """
+    o = replace(options or FusionOptions(), **overrides)
     Ts = np.asarray(T_cam_table, dtype=np.float64).reshape(-1, 4, 4)
     if len(depths) != len(Ts) or len(images_rgb) != len(Ts):
         raise ValueError(f"{len(depths)} depth maps, {len(images_rgb)} images, {len(Ts)} poses")
-    if min_views < 1 or stride < 1:
+    if o.min_views < 1 or o.stride < 1:
         raise ValueError("min_views and stride must be >= 1")
-    samples = [view_samples(d, K, T, stride, min_confidence) for d, T in zip(depths, Ts)]
-    check = select_neighbours(Ts, check_neighbours, min_angle_deg=0.0)
-    cos_max = float(np.cos(np.radians(max_normal_deg)))
+    samples = [view_samples(d, K, T, o.stride, o.min_confidence) for d, T in zip(depths, Ts)]
+    check = select_neighbours(Ts, o.check_neighbours, min_angle_deg=0.0)
     parts = []
     for r in range(len(Ts)):
-        res = _fuse_view(r, samples, check[r], images_rgb, stride, min_views, tol_mm, cos_max)
+        res = _fuse_view(r, samples, check[r], images_rgb, o)
         if res is not None and len(res[0]):
             parts.append(res)
         if progress is not None:
@@ -188,8 +211,8 @@ def fuse_depths(depths: Sequence[DepthMap], images_rgb: Sequence[np.ndarray], K:
     pts = np.concatenate([p[0] for p in parts])
     nrm = np.concatenate([p[1] for p in parts])
     rgb = np.concatenate([p[2] for p in parts])
-    if voxel_mm > 0:
-        pts, nrm, rgb = _voxel_merge(pts, nrm, rgb, voxel_mm)
+    if o.voxel_mm > 0:
+        pts, nrm, rgb = _voxel_merge(pts, nrm, rgb, o.voxel_mm)
     return FusedPoints(pts_table=pts, normals_table=nrm, colors_rgb=rgb)
 
 

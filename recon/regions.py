@@ -30,7 +30,7 @@ one).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import ndimage
@@ -38,7 +38,7 @@ from scipy import ndimage
 from .raycast import pixel_rays_table, render_depth
 from .types import DepthMap, VoxelHull
 
-__all__ = ["RegionChoice", "choose_regions", "supported_field"]
+__all__ = ["RegionOptions", "RegionChoice", "choose_regions", "supported_field"]
 
 
 @dataclass(frozen=True)
@@ -72,6 +72,49 @@ class RegionChoice:
     n_pixels: int
 
 
+@dataclass(frozen=True)
+class RegionOptions:
+    """Settings of :func:`choose_regions` (see the module docstring for the test).
+
+    Attributes
+    ----------
+    region_mm : float
+        Edge of the vertical prisms that cut carved components into regions.
+    min_confidence : float
+        Stereo pixels below this confidence do not judge.
+    delta_mm : float
+        The two surfaces must differ by more than this at a pixel for it to judge.
+    cap_mm : float
+        Cap of a pixel's error (stereo outliers, pixels a surface misses).
+    margin : float
+        A region stays carved when its mean fused error is below ``margin``
+        times the hull's.
+    min_pixels : int
+        Judged pixels a region needs to be judged at all.
+    max_through : float
+        A region is rejected when, in the held-out views, more pixels than
+        this fraction of its judged ones see through it where their
+        silhouette or their stereo saw the object: carving must not cut the
+        object through where a camera saw it whole.
+    smooth_vox : float
+        Gaussian sigma (voxels) smoothing the kept fused surface against
+        stereo noise (the field clipped to two voxels each side of its zero
+        level, never above the hull); 0: none.
+    stride : int
+        Pixel step of the test.
+    """
+
+    region_mm: float = 15.0
+    min_confidence: float = 0.5
+    delta_mm: float = 1.0
+    cap_mm: float = 10.0
+    margin: float = 0.8
+    min_pixels: int = 20
+    max_through: float = 0.01
+    smooth_vox: float = 1.0
+    stride: int = 4
+
+
 def _region_labels(carved: np.ndarray, voxel_mm: float, region_mm: float) -> tuple[np.ndarray, int]:
     """Connected components of ``carved`` cut into vertical prisms (axis 1 is up) of ``region_mm``; 0: not carved."""
     comp, n = ndimage.label(carved, structure=np.ones((3, 3, 3), bool))
@@ -87,14 +130,19 @@ def _region_labels(carved: np.ndarray, voxel_mm: float, region_mm: float) -> tup
     return out, int(lab.max()) + 1
 
 
-def _judge(labels, n, hull, hull_vf, fused_vf, depths, masks, K, Ts, min_confidence, delta_mm, cap_mm, stride):
-    """Per region (arrays of n + 1): summed hull error, summed fused error, judged pixels, see-through pixels."""
+def _judge(labels, n, hull, meshes_vf, depths, masks, K, Ts, o: RegionOptions):
+    """Per region (arrays of n + 1): summed hull error, summed fused error, judged pixels, see-through pixels.
+
+    ``meshes_vf``: the hull's and the fused grid's meshes, each (vertices_table, faces).
+    """
+    hull_vf, fused_vf = meshes_vf
+    stride, delta_mm, cap_mm = o.stride, o.delta_mm, o.cap_mm
     near = ndimage.maximum_filter(labels, size=5)  # a hull hit lies within a voxel or two of its region
     Ks = np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(K, float)
     origin, vox = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
     e_h, e_f, cnt, n_through = (np.zeros(n + 1) for _ in range(4))
     for dm, T, m in zip(depths, Ts, masks if masks is not None else [None] * len(Ts)):
-        d = np.where(dm.confidence >= min_confidence, dm.depth_mm, 0.0)[::stride, ::stride]
+        d = np.where(dm.confidence >= o.min_confidence, dm.depth_mm, 0.0)[::stride, ::stride]
         size = (d.shape[1], d.shape[0])
         r_h = render_depth(*hull_vf, Ks, T, size)
         r_f = render_depth(*fused_vf, Ks, T, size)
@@ -150,10 +198,7 @@ def _blend_kept(h: np.ndarray, F: np.ndarray, labels: np.ndarray, keep: np.ndarr
 
 def choose_regions(hull: VoxelHull, values: np.ndarray, depths: Sequence[DepthMap], K: np.ndarray,
                    T_cam_table: Sequence[np.ndarray] | np.ndarray, masks: Sequence[np.ndarray] | None = None, *,
-                   region_mm: float = 15.0,
-                   min_confidence: float = 0.5, delta_mm: float = 1.0, cap_mm: float = 10.0,
-                   margin: float = 0.8, min_pixels: int = 20, max_through: float = 0.01,
-                   smooth_vox: float = 1.0, stride: int = 4) -> RegionChoice:
+                   options: RegionOptions | None = None, **overrides) -> RegionChoice:
     """Keep the fused grid only in the carved regions that held-out stereo confirms.
 
     Parameters
@@ -168,25 +213,18 @@ def choose_regions(hull: VoxelHull, values: np.ndarray, depths: Sequence[DepthMa
     T_cam_table : (V, 4, 4) float64
         Their poses.
     masks : sequence of V (H, W) bool, optional
-        Those views' silhouettes (see ``max_through``).
-    region_mm : float
-        Edge of the cubes that cut carved components into regions.
-    min_confidence, delta_mm, cap_mm, margin, min_pixels, stride
-        See the module docstring; ``stride`` is the pixel step of the test.
-    max_through : float
-        A region is rejected when, in the held-out views, more pixels than
-        this fraction of its judged ones see through it where their
-        silhouette or their stereo saw the object: carving must not cut the
-        object through where a camera saw it whole.
-    smooth_vox : float
-        Gaussian sigma (voxels) smoothing the kept fused surface against
-        stereo noise (the field clipped to two voxels each side of its zero
-        level, never above the hull); 0: none.
+        Those views' silhouettes (see ``RegionOptions.max_through``).
+    options : RegionOptions, optional
+        The test's settings; default ``RegionOptions()``.
+    **overrides
+        Fields of :class:`RegionOptions` by name (``min_pixels=10``),
+        replacing those of ``options``.
 
     Returns
     -------
     RegionChoice
     """
+    o = replace(options or RegionOptions(), **overrides)
     from .stereo import hull_mesh
 
     h = np.asarray(hull.values, np.float32)
@@ -197,26 +235,25 @@ def choose_regions(hull: VoxelHull, values: np.ndarray, depths: Sequence[DepthMa
     if len(depths) != len(Ts):
         raise ValueError(f"{len(depths)} depth maps but {len(Ts)} poses")
     vox3 = float(hull.voxel_mm) ** 3
-    labels, n = _region_labels((h > 0) & (F <= 0), float(hull.voxel_mm), region_mm)
+    labels, n = _region_labels((h > 0) & (F <= 0), float(hull.voxel_mm), o.region_mm)
     nan = float("nan")
     if n == 0:
         return RegionChoice(h.copy(), 0, 0, 0, 0.0, 0.0, nan, nan, 0)
     fused = VoxelHull(values=F, origin_table=hull.origin_table, voxel_mm=hull.voxel_mm)
     if masks is not None and len(masks) != len(Ts):
         raise ValueError(f"{len(masks)} masks but {len(Ts)} poses")
-    e_h, e_f, cnt, n_through = _judge(labels, n, hull, hull_mesh(hull), hull_mesh(fused), depths, masks, K, Ts,
-                                      min_confidence, delta_mm, cap_mm, stride)
-    judged = cnt >= min_pixels
-    keep = judged & (e_f < margin * e_h) & (n_through <= max_through * np.maximum(cnt, 1.0))
+    e_h, e_f, cnt, n_through = _judge(labels, n, hull, (hull_mesh(hull), hull_mesh(fused)), depths, masks, K, Ts, o)
+    judged = cnt >= o.min_pixels
+    keep = judged & (e_f < o.margin * e_h) & (n_through <= o.max_through * np.maximum(cnt, 1.0))
     keep[0] = False
     size = np.bincount(labels.ravel(), minlength=n + 1) * vox3
-    out, kept_vox = _blend_kept(h, F, labels, keep, float(hull.voxel_mm), region_mm)
-    if smooth_vox > 0 and kept_vox.any():
+    out, kept_vox = _blend_kept(h, F, labels, keep, float(hull.voxel_mm), o.region_mm)
+    if o.smooth_vox > 0 and kept_vox.any():
         # stereo noise: smooth the kept surface (the field clipped to a band, so deep values
         # do not bleed through thin walls), never above the hull
         band = 2.0 * float(hull.voxel_mm)
         near = ndimage.maximum_filter(kept_vox, size=5)
-        sm = ndimage.gaussian_filter(np.clip(out, -band, band), smooth_vox)
+        sm = ndimage.gaussian_filter(np.clip(out, -band, band), o.smooth_vox)
         out = np.where(near, np.minimum(np.where(np.abs(out) < band, sm, out), h), out).astype(np.float32)
     k = np.flatnonzero(keep)
     ph, pf, pc = e_h[k].sum(), e_f[k].sum(), cnt[k].sum()

@@ -26,6 +26,7 @@ confident wrong depth.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -33,7 +34,46 @@ import numpy as np
 from .raycast import first_hits, pixel_rays_table, raycasting_scene
 from .types import DepthMap, TableMesh, VoxelHull
 
-__all__ = ["depth_maps", "hull_depth_range", "hull_mesh", "select_neighbours", "pixel_rays_table"]
+__all__ = ["StereoOptions", "depth_maps", "hull_depth_range", "hull_mesh", "select_neighbours", "pixel_rays_table"]
+
+
+@dataclass(frozen=True)
+class StereoOptions:
+    """Settings of :func:`depth_maps`.
+
+    Attributes
+    ----------
+    neighbours : int
+        Views on each side (by camera angle) matched against each view.
+    scale : float
+        Resolution of the sweep relative to the images (0.5: half); depth is
+        upsampled back to (H, W).
+    window : int
+        NCC window edge, pixels at the sweep resolution (odd, >= 3).
+    step_px : float
+        Largest image motion per depth sample in the farthest neighbour.
+        (A coarse-to-fine variant, 1.5 px then 0.5 px around a smoothed
+        coarse surface, halved the time but raised the 90th-percentile depth
+        error from 0.58 to 0.74 mm on the vase: every pixel of an NCC window
+        must be warped with a coherent depth, which the hull's own surface
+        gives the single sweep for free.)
+    ncc_lo, ncc_hi, uniq_gap, texture_lo, texture_hi : float
+        Confidence ramps: NCC peak, gap to the second local maximum, grey-level
+        standard deviation of the reference window (0-255 scale).
+    seed : int
+        Seed of the pixel sample that sizes each view's sweep.
+    """
+
+    neighbours: int = 2
+    scale: float = 0.5
+    window: int = 7
+    step_px: float = 0.75
+    ncc_lo: float = 0.4
+    ncc_hi: float = 0.85
+    uniq_gap: float = 0.15
+    texture_lo: float = 1.0
+    texture_hi: float = 5.0
+    seed: int = 0
 
 
 # --------------------------------------------------------------------------- hull range
@@ -301,10 +341,8 @@ def _upsample(depth: np.ndarray, conf: np.ndarray, size: tuple[int, int]) -> tup
 
 def depth_maps(images_rgb: Sequence[np.ndarray], K: np.ndarray, T_cam_table: Sequence[np.ndarray] | np.ndarray,
                depth_range: tuple[np.ndarray, np.ndarray], *, masks: Sequence[np.ndarray] | None = None,
-               neighbours: int = 2, scale: float = 0.5, window: int = 7, step_px: float = 0.75,
-               ncc_lo: float = 0.4, ncc_hi: float = 0.85, uniq_gap: float = 0.15,
-               texture_lo: float = 1.0, texture_hi: float = 5.0, seed: int = 0,
-               progress: Callable[[int, int], None] | None = None) -> list[DepthMap]:
+               options: StereoOptions | None = None, progress: Callable[[int, int], None] | None = None,
+               **overrides) -> list[DepthMap]:
     """Depth and confidence for every view by plane-sweep NCC inside the hull.
 
     Parameters
@@ -321,75 +359,64 @@ def depth_maps(images_rgb: Sequence[np.ndarray], K: np.ndarray, T_cam_table: Seq
         are skipped. Scalars are broadcast to every pixel.
     masks : sequence of V (H, W) bool, optional
         Silhouettes; only pixels inside are computed.
-    neighbours : int
-        Views on each side (by camera angle) matched against each view.
-    scale : float
-        Resolution of the sweep relative to the images (0.5: half); depth is
-        upsampled back to (H, W).
-    window : int
-        NCC window edge, pixels at the sweep resolution (odd).
-    step_px : float
-        Largest image motion per depth sample in the farthest neighbour.
-        (A coarse-to-fine variant, 1.5 px then 0.5 px around a smoothed
-        coarse surface, halved the time but raised the 90th-percentile depth
-        error from 0.58 to 0.74 mm on the vase: every pixel of an NCC window
-        must be warped with a coherent depth, which the hull's own surface
-        gives the single sweep for free.)
-    ncc_lo, ncc_hi, uniq_gap, texture_lo, texture_hi : float
-        Confidence ramps: NCC peak, gap to the second local maximum, grey-level
-        standard deviation of the reference window (0-255 scale).
+    options : StereoOptions, optional
+        The sweep's settings; default ``StereoOptions()``.
+    **overrides
+        Fields of :class:`StereoOptions` by name (``neighbours=3``), replacing
+        those of ``options``.
 
     Returns
     -------
     list of DepthMap
         One per view, (H, W): z-depth (mm, 0 unknown) and confidence in [0, 1].
     """
+    o = replace(options or StereoOptions(), **overrides)
     Ts = np.asarray(T_cam_table, dtype=np.float64).reshape(-1, 4, 4)
     V = len(Ts)
     if len(images_rgb) != V:
         raise ValueError(f"{len(images_rgb)} images but {V} poses")
-    if not 0.0 < scale <= 1.0:
-        raise ValueError(f"scale must be in (0, 1], got {scale}")
-    if window < 3 or window % 2 == 0:
-        raise ValueError(f"window must be odd and >= 3, got {window}")
+    if not 0.0 < o.scale <= 1.0:
+        raise ValueError(f"scale must be in (0, 1], got {o.scale}")
+    if o.window < 3 or o.window % 2 == 0:
+        raise ValueError(f"window must be odd and >= 3, got {o.window}")
     H, W = np.asarray(images_rgb[0]).shape[:2]
     near_all = np.broadcast_to(np.asarray(depth_range[0], np.float32), (V, H, W))
     far_all = np.broadcast_to(np.asarray(depth_range[1], np.float32), (V, H, W))
     K = np.asarray(K, dtype=np.float64)
-    Ks = _scaled_K(K, scale)
-    size_s = (int(round(W * scale)), int(round(H * scale)))
-    greys = [_grey(im, scale) for im in images_rgb]
-    rng = np.random.default_rng(seed)
-    nb = select_neighbours(Ts, neighbours)
+    Ks = _scaled_K(K, o.scale)
+    greys = [_grey(im, o.scale) for im in images_rgb]
+    rng = np.random.default_rng(o.seed)
+    nb = select_neighbours(Ts, o.neighbours)
     out = []
     for r in range(V):
         valid_full = (near_all[r] > 0) & (far_all[r] > near_all[r])
         if masks is not None:
             valid_full &= np.asarray(masks[r], bool)
-        out.append(_one_view(r, greys, Ks, Ts, near_all[r], far_all[r], valid_full, nb[r], size_s, (W, H),
-                             window, step_px, (ncc_lo, ncc_hi, uniq_gap, texture_lo, texture_hi), rng))
+        out.append(_one_view(r, greys, Ks, Ts, (near_all[r], far_all[r]), valid_full, nb[r], (W, H), o, rng))
         if progress is not None:
             progress(r + 1, V)
     return out
 
 
-def _one_view(r, greys, Ks, Ts, near, far, valid_full, nb, size_s, size, window, step_px, ramps, rng) -> DepthMap:
+def _one_view(r, greys, Ks, Ts, near_far, valid_full, nb, size, o: StereoOptions, rng) -> DepthMap:
+    """Depth map of view ``r`` (full size (W, H)) from the sweep at ``o.scale`` against views ``nb``."""
     W, H = size
+    size_s = (int(round(W * o.scale)), int(round(H * o.scale)))
+    near, far = near_far
     empty = DepthMap(view=r, depth_mm=np.zeros((H, W), np.float32), confidence=np.zeros((H, W), np.float32))
     valid_s = _resize_nearest(valid_full.astype(np.uint8), size_s) > 0
     if not valid_s.any() or not nb:
         return empty
     near_s = _resize_nearest(np.ascontiguousarray(near), size_s)
     far_s = _resize_nearest(np.ascontiguousarray(far), size_s)
-    ref = _Ref(greys[r], Ks, Ts[r], near_s, far_s, valid_s, window)
+    ref = _Ref(greys[r], Ks, Ts[r], near_s, far_s, valid_s, o.window)
     neigh = [(greys[j], Ks, Ts[j]) for j in nb]
     span = (ref.far - ref.near).astype(np.float32)
-    D = _auto_samples(ref, neigh, step_px, rng)
+    D = _auto_samples(ref, neigh, o.step_px, rng)
     dz = span / max(D - 1, 1)
     pos, c1, c2 = _pick_peak(_sweep(ref, neigh, ref.near, dz, D))
     depth = ref.near + pos * dz
-    ncc_lo, ncc_hi, uniq_gap, tex_lo, tex_hi = ramps
-    conf = _ramp(c1, ncc_lo, ncc_hi) * _ramp(c1 - c2, 0.0, uniq_gap) * _ramp(ref.sI, tex_lo, tex_hi)
+    conf = _ramp(c1, o.ncc_lo, o.ncc_hi) * _ramp(c1 - c2, 0.0, o.uniq_gap) * _ramp(ref.sI, o.texture_lo, o.texture_hi)
     keep = ref.valid & (conf > 0)
     depth_s = np.zeros(size_s[::-1], np.float32)
     conf_s = np.zeros(size_s[::-1], np.float32)

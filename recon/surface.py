@@ -52,15 +52,64 @@ region by region; it is kept for callers comparing two meshes.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import ndimage
 
 from .raycast import render_depth
-from .types import DepthMap, FusedPoints, VoxelHull
+from .types import DepthMap, FusedPoints, TableMesh, VoxelHull
 
-__all__ = ["fused_field", "fused_surface", "splat_depth", "compare_to_hull", "HullComparison"]
+__all__ = ["SurfaceOptions", "fused_field", "fused_surface", "splat_depth", "compare_to_hull", "HullComparison"]
+
+
+@dataclass(frozen=True)
+class SurfaceOptions:
+    """Settings of :func:`fused_field` (and :func:`fused_surface`).
+
+    Attributes
+    ----------
+    trunc_mm : float, optional
+        TSDF truncation ``tau``; None: ``max(2 TSDF voxels, 1.5 mm)`` (cup:
+        1.5 mm gave Chamfer 1.09 mm, 2.5 mm 1.11, 4 mm 1.13).
+    hull_weight : float
+        Weight of the hull prior, in views.
+    delta_mm : float
+        Stereo must put the surface this far inside the hull to move it; a
+        view sees a voxel as free when the voxel lies this far in front of
+        the surface it sees.
+    tsdf_step : int, optional
+        TSDF on every ``tsdf_step``-th hull voxel; None: the step that makes
+        its voxel about 1 mm (at least 1).
+    stride : int
+        Pixel step of the per-view z-buffers.
+    min_confidence, agree_mm : float
+        A z-buffer pixel counts only where the view's own depth (confidence
+        at least ``min_confidence``) agrees with it within ``agree_mm``.
+    min_free_views : int
+        Hull space is carved only where at least this many views saw it as
+        free; the cavity prior needs as many views from above its opening.
+    cavity_prior : bool
+        Treat unobserved hull voxels under an observed opening as empty (a
+        cavity no camera could look into; see :func:`_unseen_cavity`).
+    min_cavity_mm2 : float
+        Smallest horizontal extent of such a cavity's top; smaller ones
+        (gaps in the observed surface of a solid object) are left alone.
+    min_opening_mm : float
+        Depth of observed free space the cavity's opening must show.
+    """
+
+    trunc_mm: float | None = None
+    hull_weight: float = 0.1
+    delta_mm: float = 1.0
+    tsdf_step: int | None = None
+    stride: int = 2
+    min_confidence: float = 0.2
+    agree_mm: float = 2.0
+    min_free_views: int = 2
+    cavity_prior: bool = True
+    min_cavity_mm2: float = 100.0
+    min_opening_mm: float = 5.0
 
 
 def splat_depth(points: FusedPoints, K: np.ndarray, T_cam_table: np.ndarray, size: tuple[int, int],
@@ -213,8 +262,9 @@ def _integrate(pts, zbufs, K_sub, Ts, tau, delta, progress):
     return acc, cnt, n_free, n_down
 
 
-def _tsdf(hull: VoxelHull, zbufs, K_sub, Ts, tau, hull_weight, delta, step, progress, cavity_prior,
-          min_cavity_mm2, min_free_views, min_opening_mm):
+def _tsdf(hull: VoxelHull, zbufs, K_sub, Ts, tau: float, step: int, o: SurfaceOptions, progress):
+    """The fused grid ``F`` on the hull's grid: the TSDF on every ``step``-th voxel, carving only on evidence."""
+    hull_weight, delta, min_free_views = o.hull_weight, float(o.delta_mm), int(o.min_free_views)
     vals = np.asarray(hull.values, np.float32)
     coarse = vals[::step, ::step, ::step]
     idx = np.nonzero(coarse > -tau)
@@ -228,15 +278,15 @@ def _tsdf(hull: VoxelHull, zbufs, K_sub, Ts, tau, hull_weight, delta, step, prog
     NF[idx] = n_free
     weak = (D < 0) & (coarse > 0) & (ndimage.maximum_filter(NF, size=3) < min_free_views)
     D[weak] = np.clip(coarse[weak], -tau, tau)
-    if cavity_prior:
+    if o.cavity_prior:
         # "seen": some view saw a surface at or in front of the voxel (free-only sightings do not count)
         C = np.zeros(coarse.shape, np.float32)
         C[idx] = cnt - n_free
         C[(D < 0) & (coarse > 0)] = 1.0
         down = np.zeros(coarse.shape, np.int16)
         down[idx] = n_down
-        E = _unseen_cavity(coarse, D, C, down, step * float(hull.voxel_mm), min_cavity_mm2, min_free_views,
-                           min_opening_mm)
+        E = _unseen_cavity(coarse, D, C, down, step * float(hull.voxel_mm), float(o.min_cavity_mm2), min_free_views,
+                           float(o.min_opening_mm))
         D[E] = -tau
     fine = np.nonzero(vals > -tau)
     if step > 1:
@@ -250,11 +300,8 @@ def _tsdf(hull: VoxelHull, zbufs, K_sub, Ts, tau, hull_weight, delta, step, prog
 
 def fused_field(points: FusedPoints, hull: VoxelHull, K: np.ndarray, T_cam_table: Sequence[np.ndarray] | np.ndarray,
                 depths: Sequence[DepthMap] | None = None, *, size: tuple[int, int] | None = None,
-                trunc_mm: float | None = None, hull_weight: float = 0.1, delta_mm: float = 1.0,
-                tsdf_step: int | None = None, stride: int = 2, min_confidence: float = 0.2,
-                agree_mm: float = 2.0, min_free_views: int = 2, cavity_prior: bool = True,
-                min_cavity_mm2: float = 100.0, min_opening_mm: float = 5.0,
-                progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+                options: SurfaceOptions | None = None, progress: Callable[[int, int], None] | None = None,
+                **overrides) -> np.ndarray:
     """The hull's signed grid carved by the fused stereo points (``F <= h``).
 
     Parameters
@@ -269,42 +316,23 @@ def fused_field(points: FusedPoints, hull: VoxelHull, K: np.ndarray, T_cam_table
         Poses of the views to integrate (any subset of those that saw the points).
     depths : sequence of V DepthMap, optional
         Those views' own stereo depth: a z-buffer pixel counts only where the
-        view's depth (confidence >= ``min_confidence``) agrees with it within
-        ``agree_mm``, which removes points seen through pinholes of the
-        splat. Also gives the image size when ``size`` is not given.
+        view's depth agrees with it (see :class:`SurfaceOptions`), which
+        removes points seen through pinholes of the splat. Also gives the
+        image size when ``size`` is not given.
     size : (W, H), optional
         Image size.
-    trunc_mm : float, optional
-        TSDF truncation ``tau``; default ``max(2 TSDF voxels, 1.5 mm)`` (cup:
-        1.5 mm gave Chamfer 1.09 mm, 2.5 mm 1.11, 4 mm 1.13).
-    hull_weight : float
-        Weight of the hull prior, in views.
-    delta_mm : float
-        Stereo must put the surface this far inside the hull to move it; a
-        view sees a voxel as free when the voxel lies this far in front of
-        the surface it sees.
-    tsdf_step : int, optional
-        TSDF on every ``tsdf_step``-th hull voxel; default: the step that
-        makes its voxel about 1 mm (at least 1).
-    stride : int
-        Pixel step of the per-view z-buffers.
-    min_free_views : int
-        Hull space is carved only where at least this many views saw it as
-        free; the cavity prior needs as many views from above its opening.
-    cavity_prior : bool
-        Treat unobserved hull voxels under an observed opening as empty (a
-        cavity no camera could look into; see :func:`_unseen_cavity`).
-    min_cavity_mm2 : float
-        Smallest horizontal extent of such a cavity's top; smaller ones
-        (gaps in the observed surface of a solid object) are left alone.
-    min_opening_mm : float
-        Depth of observed free space the cavity's opening must show.
+    options : SurfaceOptions, optional
+        The fusion's settings; default ``SurfaceOptions()``.
+    **overrides
+        Fields of :class:`SurfaceOptions` by name (``cavity_prior=False``),
+        replacing those of ``options``.
 
     Returns
     -------
     (Nx, Ny, Nz) float32
         Values on the hull's grid, > 0 inside, ``<= hull.values`` everywhere.
     """
+    o = replace(options or SurfaceOptions(), **overrides)
     Ts = np.asarray(T_cam_table, dtype=np.float64).reshape(-1, 4, 4)
     if size is None:
         if not depths:
@@ -313,31 +341,33 @@ def fused_field(points: FusedPoints, hull: VoxelHull, K: np.ndarray, T_cam_table
         size = (W, H)
     if len(points.pts_table) == 0:
         return np.asarray(hull.values, np.float32).copy()
+    stride = o.stride
     zbufs = [splat_depth(points, K, T, size, stride) for T in Ts]
     if depths is not None:
         if len(depths) != len(Ts):
             raise ValueError(f"{len(depths)} depth maps but {len(Ts)} poses")
-        zbufs = [_agreeing(zb, dm, stride, min_confidence, agree_mm) for zb, dm in zip(zbufs, depths)]
+        zbufs = [_agreeing(zb, dm, stride, o.min_confidence, o.agree_mm) for zb, dm in zip(zbufs, depths)]
     K_sub = np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(K, float)
-    step = int(tsdf_step) if tsdf_step is not None else max(1, int(round(1.0 / float(hull.voxel_mm))))
-    tau = float(trunc_mm) if trunc_mm is not None else max(2.0 * step * float(hull.voxel_mm), 1.5)
-    return _tsdf(hull, zbufs, K_sub, Ts, tau, hull_weight, float(delta_mm), step, progress, bool(cavity_prior),
-                 float(min_cavity_mm2), int(min_free_views), float(min_opening_mm))
+    step = int(o.tsdf_step) if o.tsdf_step is not None else max(1, int(round(1.0 / float(hull.voxel_mm))))
+    tau = float(o.trunc_mm) if o.trunc_mm is not None else max(2.0 * step * float(hull.voxel_mm), 1.5)
+    return _tsdf(hull, zbufs, K_sub, Ts, tau, step, o, progress)
 
 
 def fused_surface(points: FusedPoints, hull: VoxelHull, K: np.ndarray, T_cam_table: Sequence[np.ndarray] | np.ndarray,
-                  depths: Sequence[DepthMap] | None = None, **kwargs) -> tuple[np.ndarray, np.ndarray]:
+                  depths: Sequence[DepthMap] | None = None, **kwargs) -> TableMesh:
     """Raw mesh (marching cubes, no clean-up) of :func:`fused_field`; same arguments.
 
     Returns
     -------
-    vertices_table : (N, 3) float64, mm
-    faces : (M, 3) int64, counter-clockwise seen from outside
+    TableMesh
+        ``vertices_table`` (N, 3) float64 mm, ``faces`` (M, 3) int64
+        counter-clockwise seen from outside; no normals or colours.
     """
     from .stereo import hull_mesh
 
     F = fused_field(points, hull, K, T_cam_table, depths, **kwargs)
-    return hull_mesh(VoxelHull(values=F, origin_table=hull.origin_table, voxel_mm=hull.voxel_mm))
+    V, faces = hull_mesh(VoxelHull(values=F, origin_table=hull.origin_table, voxel_mm=hull.voxel_mm))
+    return TableMesh(vertices_table=V, faces=faces)
 
 
 # --------------------------------------------------------------------------- decision

@@ -7,12 +7,12 @@ import open3d as o3d
 import pytest
 from test_stereo import SIZE, box_mesh, hull_from_masks, intrinsics, noise_texture, render, turntable_poses
 
-from recon.fusion import fuse_depths
+from recon.fusion import FusionOptions, fuse_depths
 from recon.meshing import clip_to_hull, hull_excess_mm, mesh_from_hull, mesh_stats
 from recon.regions import choose_regions, supported_field
 from recon.stereo import depth_maps, hull_depth_range, hull_mesh
-from recon.surface import _unseen_cavity, compare_to_hull, fused_field, fused_surface, splat_depth
-from recon.types import DepthMap, FusedPoints, VoxelHull
+from recon.surface import SurfaceOptions, _unseen_cavity, compare_to_hull, fused_field, fused_surface, splat_depth
+from recon.types import DepthMap, FusedPoints, TableMesh, VoxelHull
 
 PIT_FLOOR_Y_MM = 30.0   # the dent's floor; the box top is at 50 mm
 PIT_TOL_MM = 3.0        # fused surface at the dent's centre, 2 mm voxels
@@ -83,7 +83,8 @@ def test_fused_surface_recovers_the_dent(dent_scene):
     s = dent_scene
     hv, hf = hull_mesh(s["hull"])
     assert _top_at_pit_centre(hv) > 49.0  # the hull cannot see the dent
-    fv, ff = fused_surface(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"])
+    fused = fused_surface(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"])
+    fv, ff = fused.vertices_table, fused.faces
     assert _top_at_pit_centre(fv) == pytest.approx(PIT_FLOOR_Y_MM, abs=PIT_TOL_MM)
     # nothing outside the hull: every fused vertex within a voxel of the hull's inside
     lo, hi = hv.min(0) - 2.0, hv.max(0) + 2.0
@@ -96,7 +97,7 @@ def test_fused_surface_recovers_the_dent(dent_scene):
 def test_fused_surface_without_points_is_the_hull(dent_scene):
     s = dent_scene
     empty = FusedPoints(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
-    fv, _ = fused_surface(empty, s["hull"], s["K"], s["Ts"], size=SIZE)
+    fv = fused_surface(empty, s["hull"], s["K"], s["Ts"], size=SIZE).vertices_table
     hv, _ = hull_mesh(s["hull"])
     np.testing.assert_allclose(fv, hv)
 
@@ -111,6 +112,31 @@ def test_inconsistent_depths_are_rejected():
     imgs = [np.zeros((H, W, 3), np.uint8)] * len(Ts)
     pts = fuse_depths(dms, imgs, K, Ts, min_views=3, tol_mm=0.5)
     assert len(pts.pts_table) < 0.01 * H * W
+
+
+def test_options_objects_and_keyword_overrides_are_the_same_settings(dent_scene):
+    s = dent_scene
+    kw = fuse_depths(s["dms"], s["imgs"], s["K"], s["Ts"], min_views=4, voxel_mm=1.0)
+    opt = fuse_depths(s["dms"], s["imgs"], s["K"], s["Ts"], options=FusionOptions(min_views=4, voxel_mm=1.0))
+    np.testing.assert_array_equal(kw.pts_table, opt.pts_table)
+    assert 0 < len(kw.pts_table) < len(s["pts"].pts_table)  # the settings took effect
+    # a misspelt setting is refused, as a misspelt keyword argument was
+    with pytest.raises(TypeError):
+        fuse_depths(s["dms"], s["imgs"], s["K"], s["Ts"], min_view=4)
+    with pytest.raises(TypeError):
+        depth_maps(s["imgs"], s["K"], s["Ts"], (1.0, 2.0), neighbors=2)
+    with pytest.raises(TypeError):
+        fused_field(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"], cavity=False)
+    with pytest.raises(TypeError):
+        choose_regions(s["hull"], s["hull"].values, s["dms"], s["K"], s["Ts"], min_pixel=3)
+
+
+def test_fused_surface_is_a_table_mesh(dent_scene):
+    s = dent_scene
+    mesh = fused_surface(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"], options=SurfaceOptions(cavity_prior=False))
+    assert isinstance(mesh, TableMesh) and mesh.faces.shape[1] == 3 and mesh.vertices_table.shape[1] == 3
+    np.testing.assert_array_equal(mesh.vertices_table, fused_surface(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"],
+                                                                     cavity_prior=False).vertices_table)
 
 
 def test_splat_keeps_the_nearest_facing_point():
@@ -157,9 +183,9 @@ def test_unseen_floor_of_a_deep_pit_is_emptied_down_to_a_wall_thick_floor(well_s
     hv, _ = hull_mesh(s["hull"])
     assert _top_at(hv, 0, 0) > 58.0  # the hull roofs the pit over
     # without the prior the pit is carved only as deep as rays reach: a lid well above the floor
-    fv0, _ = fused_surface(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"], cavity_prior=False)
+    fv0 = fused_surface(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"], cavity_prior=False).vertices_table
     assert _top_at(fv0, 0, 0) > WELL_FLOOR_Y_MM + 3 * WELL_TOL_MM
-    fv, _ = fused_surface(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"])
+    fv = fused_surface(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"]).vertices_table
     assert _top_at(fv, 0, 0) == pytest.approx(WELL_FLOOR_Y_MM, abs=WELL_TOL_MM)
     # the walls keep their top: observed surface stops the descent
     for x, z in ((30, 0), (-30, 0), (0, 30), (0, -30)):
@@ -168,8 +194,8 @@ def test_unseen_floor_of_a_deep_pit_is_emptied_down_to_a_wall_thick_floor(well_s
 
 def test_cavity_prior_leaves_a_visible_dent_alone(dent_scene):
     s = dent_scene
-    a, _ = fused_surface(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"], cavity_prior=False)
-    b, _ = fused_surface(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"])
+    a = fused_surface(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"], cavity_prior=False).vertices_table
+    b = fused_surface(s["pts"], s["hull"], s["K"], s["Ts"], s["dms"]).vertices_table
     assert len(a) == len(b) and np.abs(a - b).max() < 1e-6
 
 

@@ -18,6 +18,7 @@ Wires :mod:`recon.stereo`, :mod:`recon.fusion`, :mod:`recon.surface` and
 from __future__ import annotations
 
 import logging
+from typing import NamedTuple
 
 import numpy as np
 
@@ -25,16 +26,34 @@ from recon.types import FusedPoints, TableMesh, VoxelHull
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_fusion"]
+__all__ = ["FusionResult", "run_fusion"]
+
+
+class FusionResult(NamedTuple):
+    """What the fusion stage gives the next: a named tuple, so ``mesh, points, note = run_fusion(...)`` reads too.
+
+    Attributes
+    ----------
+    mesh : TableMesh
+        The mesh to colour and export: the hull mesh unless some region of
+        the fused surface was confirmed by held-out views.
+    points : FusedPoints
+        The fused stereo points (table frame, mm).
+    note : str
+        One line for the summary: what was kept and why.
+    """
+
+    mesh: TableMesh
+    points: FusedPoints
+    note: str
 
 
 def run_fusion(images_rgb, masks, K: np.ndarray, T_cam_table: np.ndarray, hull: VoxelHull, hull_mesh: TableMesh,
-               opts, progress) -> tuple[TableMesh, FusedPoints, str]:
-    """Returns (mesh to colour and export, fused points, a one-line note for the summary).
+               opts, progress) -> FusionResult:
+    """The mesh to colour and export, the fused points and a note for the summary (:class:`FusionResult`).
 
-    The mesh is the hull mesh unless some region of the fused surface was
-    confirmed by held-out views; check :func:`recon.meshing.mesh_stats` for
-    watertightness and bodies either way.
+    Check :func:`recon.meshing.mesh_stats` for watertightness and bodies of
+    the mesh either way.
     """
     from recon.fusion import fuse_depths
     from recon.meshing import clip_to_hull, mesh_from_hull, mesh_stats
@@ -49,9 +68,9 @@ def run_fusion(images_rgb, masks, K: np.ndarray, T_cam_table: np.ndarray, hull: 
     with progress.stage("fusion") as tick:
         fused = fuse_depths(depths, images_rgb, K, T_cam_table, progress=tick)
     if len(fused.pts_table) == 0:
-        return hull_mesh, fused, "hull kept: stereo found no consistent points"
+        return FusionResult(hull_mesh, fused, "hull kept: stereo found no consistent points")
     if len(T_cam_table) < 4:
-        return hull_mesh, fused, "hull kept: too few views to hold any out for judging the fused surface"
+        return FusionResult(hull_mesh, fused, "hull kept: too few views to hold any out for judging the fused surface")
     with progress.stage("surface") as tick:
         F = fused_field(fused, hull, K, T_cam_table[0::2], depths[0::2], size=(W, H), progress=tick)
         choice = choose_regions(hull, F, depths[1::2], K, T_cam_table[1::2], masks[1::2])
@@ -60,7 +79,7 @@ def run_fusion(images_rgb, masks, K: np.ndarray, T_cam_table: np.ndarray, hull: 
         why = ("stereo carved nothing" if choice.n_regions == 0 else
                f"none of {choice.n_regions} carved regions ({choice.rejected_mm3 / 1000:.1f} cm³) was confirmed "
                f"by held-out views ({choice.n_unjudged} too little seen to judge)")
-        return hull_mesh, fused, f"hull kept: {n_pts} fused points; {why}"
+        return FusionResult(hull_mesh, fused, f"hull kept: {n_pts} fused points; {why}")
     with progress.stage("fused mesh"):
         F = supported_field(hull.values, choice.values)
         mesh = mesh_from_hull(VoxelHull(values=F, origin_table=hull.origin_table, voxel_mm=hull.voxel_mm),
@@ -69,11 +88,12 @@ def run_fusion(images_rgb, masks, K: np.ndarray, T_cam_table: np.ndarray, hull: 
     st, sh = mesh_stats(mesh), mesh_stats(hull_mesh)
     if not st.watertight:
         log.warning("the fused mesh is not watertight; keeping the hull mesh")
-        return hull_mesh, fused, f"hull kept: the fused mesh could not be made watertight ({n_pts} fused points)"
+        return FusionResult(hull_mesh, fused,
+                            f"hull kept: the fused mesh could not be made watertight ({n_pts} fused points)")
     share = 100.0 * choice.kept_mm3 / max(choice.kept_mm3 + choice.rejected_mm3, 1e-9)
     note = (f"fused surface kept in {choice.n_kept} of {choice.n_regions} carved regions "
             f"({choice.kept_mm3 / 1000:.1f} cm³ carved, {share:.0f} % of what stereo carved), hull elsewhere "
             f"({choice.n_unjudged} regions too little seen to judge); on {choice.n_pixels} held-out stereo pixels "
             f"there, error {choice.fused_err_mm:.2f} mm fused vs {choice.hull_err_mm:.2f} mm hull; "
             f"volume {st.volume_mm3 / max(sh.volume_mm3, 1e-9):.2f} x the hull's; {n_pts} fused points")
-    return mesh, fused, note
+    return FusionResult(mesh, fused, note)
