@@ -372,15 +372,15 @@ def test_file_names_that_are_not_utf8_give_strict_json_and_a_summary(scene, tmp_
 
 
 def test_greyscale_photos_are_recognised_and_each_view_s_silhouette_is_listed():
-    from turntable.reconstruct import _greyscale, _Silhouettes, _silhouettes_said
+    from turntable.stages.silhouettes import Silhouettes, describe, is_greyscale
 
     rng = np.random.default_rng(0)
     grey = np.repeat(rng.integers(0, 255, (20, 30, 1), dtype=np.uint8), 3, axis=2)
     colour = grey.copy()
     colour[5:9, 5:9, 0] = 255 - colour[5:9, 5:9, 1]
-    assert _greyscale([grey, grey]) and not _greyscale([grey, colour])
+    assert is_greyscale([grey, grey]) and not is_greyscale([grey, colour])
     masks = np.zeros((10, 20, 30), bool)
     masks[0, :10] = True
-    said = _silhouettes_said([f"f{i}.jpg" for i in range(10)], _Silhouettes(masks, masks, ["ok"] * 10))
+    said = describe([f"f{i}.jpg" for i in range(10)], Silhouettes(masks, masks, ["ok"] * 10))
     assert said.startswith("silhouettes (share of the image, verdict): f0.jpg 50.0 % ok, f1.jpg 0.0 % ok")
     assert said.endswith("and 2 more")

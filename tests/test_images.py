@@ -315,7 +315,8 @@ def test_reconstruct_summary_carries_the_exif_check(tmp_path):
     from types import SimpleNamespace
 
     from turntable.frames import Frame
-    from turntable.reconstruct import ReconstructOptions, _exif_focal
+    from turntable.reconstruct import ReconstructOptions
+    from turntable.stages.cameras import exif_focal
 
     up = _upright(np.random.default_rng(2))
     for k in range(2):
@@ -328,13 +329,13 @@ def test_reconstruct_summary_carries_the_exif_check(tmp_path):
     for f_cal, warned in ((f_exif * 1.02, False), (f_exif * 1.08, True)):
         notes.clear()
         seq = SimpleNamespace(intrinsics=SimpleNamespace(width=48, height=72, focal_px=f_cal))
-        rep = _exif_focal(frames, seq, opts, progress)
+        rep = exif_focal(frames, seq, opts, progress)
         assert rep["photos"] == 2 and rep["focal_px"] == pytest.approx(f_exif, abs=0.01)
         assert rep["disagrees"] is warned and bool(notes) is warned
         if warned:
             assert "disagree by +8.0 %" in notes[0]
     video_opts = ReconstructOptions(input=tmp_path / "clip.mp4", out=tmp_path / "out", spec=None)
-    assert _exif_focal(frames, seq, video_opts, progress) is None
+    assert exif_focal(frames, seq, video_opts, progress) is None
 
 
 def test_calibrate_single_photo_reports_exif_focal(tmp_path, upright_photos, capsys):

@@ -368,7 +368,7 @@ def test_given_masks_are_undistorted_like_the_photos():
     import cv2
 
     from calib.types import Intrinsics
-    from turntable.reconstruct import _undistort_masks
+    from turntable.stages.silhouettes import undistort_masks
     from turntable.worksize import WorkSize
 
     W, H = 640, 480
@@ -380,8 +380,8 @@ def test_given_masks_are_undistorted_like_the_photos():
     assert np.linalg.norm(uv_d - uv_u) > 15
     m = np.zeros((1, H, W), np.uint8)
     cv2.circle(m[0], tuple(int(round(v)) for v in uv_d), 5, 1, -1)
-    out = _undistort_masks(m.astype(bool), intr, ws)
+    out = undistort_masks(m.astype(bool), intr, ws)
     ys, xs = np.nonzero(out[0])
     assert np.linalg.norm([xs.mean() - uv_u[0], ys.mean() - uv_u[1]]) < 1.0
     no_lens = Intrinsics.from_focal(500.0, W, H)
-    np.testing.assert_array_equal(_undistort_masks(m.astype(bool), no_lens, ws), m.astype(bool))
+    np.testing.assert_array_equal(undistort_masks(m.astype(bool), no_lens, ws), m.astype(bool))

@@ -117,6 +117,11 @@ class StageCache:
         self.enabled = enabled
         self.note = note or (lambda text: None)
 
+    def clear(self) -> None:
+        """Forget every finished stage (``--overwrite``); the lock and the published set's record stay."""
+        for p in [*self.dir.glob("*.npz"), self.dir / "cameras.json"]:
+            p.unlink(missing_ok=True)
+
     def path(self, name: str) -> Path:
         return self.dir / f"{name}.npz"
 

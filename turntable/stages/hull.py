@@ -1,0 +1,138 @@
+"""Stage 4, hull: visual-hull carving in a working volume grown until the object fits (``recon.carving``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..errors import UserError
+from ..stagecache import stage_key
+from .options import MIN_VIEWS, max_rejections
+from .silhouettes import (
+    GREY,
+    Silhouettes,
+    describe,
+    is_greyscale,
+    silhouettes_stage,
+    verdicts,
+)
+
+
+def carve_hull(masks, K, Ts, opts, cache, key, progress, vol):
+    """The visual hull of ``masks`` in the working volume ``vol`` (cached under ``key``)."""
+    from recon.types import VoxelHull
+
+    fields = {"values": ("f", (None, None, None)), "origin": ("f", (3,)), "voxel_mm": ("f", ()),
+              "touches": ("iu", (2,))}
+    hit = cache.load("hull", key, fields)
+    if hit is not None:
+        progress.note("hull: reused")
+        meta = {"touches_side": int(hit["touches"][0]), "touches_top": int(hit["touches"][1])}
+        return VoxelHull(values=hit["values"], origin_table=hit["origin"], voxel_mm=float(hit["voxel_mm"]), meta=meta)
+    from recon.carving import carve_hull
+
+    with progress.stage("carving") as tick:
+        try:
+            hull = carve_hull(masks, K, Ts, radius_mm=vol.radius_mm, height_mm=vol.height_mm,
+                              resolution=opts.resolution, max_rejections=min(max_rejections(opts), len(masks) - 1),
+                              progress=tick)
+        except ValueError as exc:
+            raise UserError(f"{opts.input}: carving: {exc}") from None
+    cache.save("hull", key, values=hull.values, origin=hull.origin_table, voxel_mm=np.array(hull.voxel_mm),
+               touches=np.array([hull.meta["touches_side"], hull.meta["touches_top"]]))
+    return hull
+
+
+@dataclass(frozen=True)
+class HullStage:
+    """The silhouettes and the hull carved from the views they kept."""
+
+    silhouettes: Silhouettes
+    keep: list[int]  # indices of the views whose silhouettes are used
+    rejected: dict[str, str]  # frame name -> why its silhouette was dropped
+    conservative: dict[str, str]  # frame name -> why its silhouette was kept with every doubtful pixel
+    hull: object | None  # recon.carving.VoxelHull; None when fewer than MIN_VIEWS silhouettes are usable
+    volume: object  # turntable.volume_stage.WorkingVolume, as grown
+    report: dict  # summary.json's "working_volume"
+
+
+def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progress, ws, intr=None) -> HullStage:
+    """Silhouettes and hull in a working volume grown until the object fits (or the view ends)."""
+    from ..volume_stage import MIN_TOUCH_VIEWS, initial_volume, mask_touches
+
+    H, W = images_rgb[0].shape[:2]
+    try:
+        vol = initial_volume(K, Ts, (W, H), None if opts.spec is None else opts.spec.extent_mm)
+    except ValueError as exc:
+        raise UserError(f"{opts.cameras or opts.input}: {exc}") from None
+    vol_key = stage_key(sil_key, vol.key(), opts.resolution, max_rejections(opts))
+    hit = cache.load("volume", vol_key, {"size": ("f", (2,)), "grown": ("U", (None,))})
+    grown: list[str] = [str(g) for g in hit["grown"]] if hit is not None else []
+    if hit is not None:
+        vol = replace(vol, radius_mm=float(hit["size"][0]), height_mm=float(hit["size"][1]))
+    automatic = opts.masks_dir is None
+    clipped: list[str] = []
+    doubtful_wall: list[str] = []
+
+    grey = automatic and is_greyscale(images_rgb)
+    if grey:
+        progress.note(f"silhouettes: {GREY}")
+
+    def carve(sil, keep, key, vol):
+        hull_key = stage_key(key, keep, opts.resolution, max_rejections(opts), vol.key())
+        try:
+            return carve_hull(sil.masks[keep] | sil.unknown[keep], K, Ts[keep], opts, cache, hull_key, progress,
+                               vol)
+        except UserError as exc:  # nothing left: say what each view's silhouette was
+            raise UserError(f"{exc}; {describe(names, sil)}" + (f"; {GREY}" if grey else "")) from None
+
+    sil, sil_for = None, None
+    for _ in range(32):  # each pass grows the volume or ends the loop; the bound is a safety net
+        key = stage_key(sil_key, vol.key()) if automatic else sil_key  # user masks do not depend on it
+        if key != sil_for:
+            sil, sil_for = silhouettes_stage(images_rgb, names, K, Ts, opts, cache, key, progress, vol, ws,
+                                              intr), key
+        keep, rejected, conservative = verdicts(names, sil.status)
+        if len(keep) < MIN_VIEWS:
+            return HullStage(sil, keep, rejected, conservative, None, vol, {})
+        hull, why, touch = None, [], (False, False)
+        if automatic:  # confined to the cylinder's image: an object larger than it touches that outline
+            side, top = mask_touches(sil.masks[keep], K, Ts[keep], vol)
+            touch = (len(side) >= MIN_TOUCH_VIEWS, len(top) >= MIN_TOUCH_VIEWS)
+            why = [f"the silhouettes of {len(v)} views reach its {w}" for w, v, t in
+                   zip(("side", "top"), (side, top), touch) if t]
+        if not why:  # the silhouettes fit: carve, and ask the hull
+            hull = carve(sil, keep, key, vol)
+            touch = (hull.meta["touches_side"] > 0, hull.meta["touches_top"] > 0)
+            why = [f"the carved hull reaches its {w}" for w, t in zip(("side", "top"), touch) if t]
+            if automatic and why:
+                # carved from masks | unknown: the doubtful pixels (carved only where a view is sure of the
+                # background) reach the wall, not the object's own silhouette, which fits. Growing on them
+                # would chase the doubt to the edge of the view: note it, and keep the volume.
+                doubtful_wall = [f"doubtful silhouette pixels (not the object's sure silhouette) let the hull reach "
+                                 f"its {w}" for w, t in zip(("side", "top"), touch) if t]
+                progress.note(f"working volume: {'; '.join(doubtful_wall)}")
+                why = []
+        if not why:
+            break
+        bigger = vol.grown(*touch)
+        if bigger is None:  # the cameras' view ends here: carve what there is, and say so
+            clipped.append(f"the object reaches past the working volume ({vol.describe()}): {' and '.join(why)}; "
+                           f"the cameras do not see further, so the model is cut there")
+            progress.note(f"WARNING: {clipped[-1]}")
+            break
+        grown.append(f"{vol.describe()} -> {bigger.describe()}: {' and '.join(why)}")
+        progress.note(f"working volume grows: {grown[-1]}")
+        vol = bigger
+    if hull is None:
+        hull = carve(sil, keep, key, vol)
+    cache.save("volume", vol_key, size=np.array([vol.radius_mm, vol.height_mm]), grown=np.array(grown, dtype=str))
+    report = {"radius_mm": round(vol.radius_mm, 1), "height_mm": round(vol.height_mm, 1),
+              "first_guess": vol.source, "max_radius_mm": round(vol.max_radius_mm, 1),
+              "max_height_mm": round(vol.max_height_mm, 1), "grown": grown, "clipped": clipped,
+              "notes": doubtful_wall}
+    return HullStage(sil, keep, rejected, conservative, hull, vol, report)
+
+
+# --------------------------------------------------------------------------- main

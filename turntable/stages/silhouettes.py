@@ -1,0 +1,144 @@
+"""Stage 3, silhouettes: automatic (``recon.silhouettes``) or ``--masks``, with a verdict per view."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UserError
+from ..progress import Progress
+from ..worksize import WorkSize
+from .frames import undistort_with
+
+
+@dataclass(frozen=True)
+class Silhouettes:
+    masks: np.ndarray  # (V, H, W) bool: object
+    unknown: np.ndarray  # (V, H, W) bool: neither object nor background for sure (carving keeps it)
+    status: list[str]  # "ok", "conservative: <reason>" (kept) or "rejected: <reason>" (dropped)
+
+
+def read_masks(masks_dir: Path, names: list[str], ws: WorkSize,
+                progress: Progress | None = None) -> tuple[np.ndarray, dict[str, str]]:
+    """Masks matched to frames by file stem, as large as the photos; any image format; > 127 = object.
+
+    A mask holding only 0 and one value up to 127 (a label image: 0/1, 0/100)
+    takes that value as the object, with a note. Returned at the work size
+    (V, h, w) bool: each mask is reduced (area average, then > 0.5) as it is
+    read; and for each mask with no object pixel, why (its brightest value).
+    """
+    from ..images import read_image
+    from ..mask_checks import check_masks
+
+    if not masks_dir.is_dir():
+        raise UserError(f"--masks {masks_dir}: not a folder")
+    (W, H), (w, h) = ws.full, ws.work
+    out = np.zeros((len(names), h, w), bool)
+    empty: dict[str, str] = {}
+    labels: list[str] = []
+    for i, (n, p) in enumerate(zip(names, mask_files(masks_dir, names))):
+        if p is None:
+            raise UserError(f"--masks {masks_dir}: no mask for frame {n} (expected {Path(n).stem}.png)")
+        m = read_image(p)
+        if m.shape[:2] != (H, W):
+            raise UserError(f"{p}: mask is {m.shape[1]}x{m.shape[0]}, frame {n} is {W}x{H}")
+        g = m.max(axis=2)
+        top = int(g.max())
+        if 0 < top <= 127 and not np.any((g != 0) & (g != top)):  # two values, 0 and a low one: a label image
+            labels.append(n)
+            threshold = 0
+        else:
+            threshold = 127
+        out[i] = ws.reduce(np.where(g > threshold, np.uint8(255), np.uint8(0))) > 127
+        if not out[i].any():
+            empty[n] = (f"{p.name} has no pixel above 127, the brightest is {top}" if top <= threshold else
+                        f"{p.name}: the object pixels vanish at the work size")
+    if labels and progress is not None:
+        progress.note(f"masks: {len(labels)} mask(s) hold only 0 and one value up to 127 (label images, "
+                      f"e.g. {labels[0]}): that value is taken as the object")
+    check_masks(out, names, masks_dir)  # inverted, all-white, mostly empty: refused before any work
+    return out, empty
+
+
+def mask_files(masks_dir: Path, names: list[str]) -> list[Path | None]:
+    """The mask file of each frame, matched by file stem (None: no mask; no folder: all None)."""
+    from ..frames import frame_name
+    from ..images import IMAGE_SUFFIXES
+
+    try:
+        by_stem = {frame_name(p.stem): p for p in sorted(masks_dir.iterdir()) if p.suffix.lower() in IMAGE_SUFFIXES}
+    except OSError:
+        by_stem = {}
+    return [by_stem.get(Path(n).stem) for n in names]
+
+
+def undistort_masks(masks: np.ndarray, intr, ws: WorkSize) -> np.ndarray:
+    """``--masks`` (V, h, w) bool drawn on the photos, undistorted like the work images (the hull is carved
+    with the undistorted camera): coverage resampled bilinearly, > 1/2 is object."""
+    if intr is None or not intr.has_distortion:
+        return masks
+    m8 = undistort_with([m.astype(np.uint8) * 255 for m in masks], intr, ws)
+    return np.stack([m > 127 for m in m8]) if len(m8) else masks
+
+
+def silhouettes_stage(images_rgb, names, K, Ts, opts, cache, key, progress, vol, ws, intr=None) -> Silhouettes:
+    V, (w, h) = len(names), ws.work
+    fields = {"masks": ("b", (V, h, w)), "unknown": ("b", (V, h, w)), "status": ("U", (V,))}
+    hit = cache.load("silhouettes", key, fields)
+    if hit is not None:
+        progress.note("silhouettes: reused")
+        return Silhouettes(hit["masks"], hit["unknown"], [str(s) for s in hit["status"]])
+    with progress.stage("silhouettes") as tick:
+        if opts.masks_dir is not None:
+            masks, empty = read_masks(opts.masks_dir, names, ws, progress)
+            masks = undistort_masks(masks, intr, ws)
+            unknown = np.zeros_like(masks)
+            status = ["ok" if m.any() else
+                      f"rejected: the mask is empty ({empty.get(n, 'nothing left after undistortion')})"
+                      for n, m in zip(names, masks)]
+        else:
+            from recon.silhouettes import estimate_silhouettes
+
+            try:
+                res = estimate_silhouettes(images_rgb, K, Ts, opts.spec, radius_mm=vol.radius_mm,
+                                           height_mm=vol.height_mm, progress=tick)
+            except ValueError as exc:
+                raise UserError(f"{opts.input}: silhouettes: {exc}") from None
+            masks, status = np.asarray(res.masks, bool), list(res.status)
+            unknown = np.asarray(res.unknown, bool)
+    cache.save("silhouettes", key, masks=masks, unknown=unknown, status=np.array(status))
+    return Silhouettes(masks, unknown, status)
+
+
+GREY = ("the photos are greyscale: automatic silhouettes tell the object from the table and the background "
+         "mostly by colour; photograph in colour, or give --masks")
+
+
+def is_greyscale(images_rgb: list[np.ndarray]) -> bool:
+    """Whether the (first few) photos carry no colour: R, G and B within 2 levels everywhere."""
+    sample = images_rgb[:3]
+    return bool(sample) and all(int(np.ptp(im.astype(np.int16), axis=2).max()) <= 2 for im in sample)
+
+
+def describe(names: list[str], sil: "Silhouettes", shown: int = 8) -> str:
+    """Each view's silhouette, as its share of the image and its verdict (for an error that stops the run)."""
+    share = sil.masks.reshape(len(names), -1).mean(axis=1)
+    items = [f"{n} {100 * a:.1f} % {st}" for n, a, st in zip(names, share, sil.status)]
+    more = f" and {len(items) - shown} more" if len(items) > shown else ""
+    return "silhouettes (share of the image, verdict): " + ", ".join(items[:shown]) + more
+
+
+def verdicts(names, status) -> tuple[list[int], dict[str, str], dict[str, str]]:
+    """Kept view indices, rejected frames and conservative (kept) frames, each with its reason."""
+    keep, rejected, conservative = [], {}, {}
+    for i, (n, s) in enumerate(zip(names, status)):
+        if s == "ok":
+            keep.append(i)
+        elif s.startswith("conservative"):
+            keep.append(i)
+            conservative[n] = s.partition(":")[2].strip() or s
+        else:  # "rejected: <reason>" (or a bare reason from an older silhouettes module)
+            rejected[n] = s.partition(":")[2].strip() if s.startswith("rejected") else s
+    return keep, rejected, conservative
