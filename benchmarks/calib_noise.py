@@ -139,7 +139,8 @@ def noise_table(trials, points, seed):
         print(f"| {sigma:g} | " + " | ".join(f"{med[n][0]:.3f}" for n in names) + f" | {sd:.3f} | {win:.0f} % |")
     print()
     print("Median angle error of the normal (deg) and relative error of T (%).\n")
-    print("| σ px | " + " | ".join(f"normal ° {n}" for n in names) + " | " + " | ".join(f"T % {n}" for n in names) + " |")
+    print("| σ px | " + " | ".join(f"normal ° {n}" for n in names) + " | "
+          + " | ".join(f"T % {n}" for n in names) + " |")
     print("|" + "---|" * (2 * len(names) + 1))
     for sigma, med, _, _, _, _ in rows:
         print(f"| {sigma:g} | " + " | ".join(f"{med[n][1]:.4f}" for n in names) + " | "
@@ -197,8 +198,8 @@ def timing_table(repeats=30, seed=0):
         f, T0 = solve_pencil(cc, ((W - 1) / 2, (H - 1) / 2))
         K0 = K.copy()
         K0[0, 0] = K0[1, 1] = f
-        jobs = [("refine_view", lambda: refine_view(obs.edges, K0, T0, 3.0))]
-        jobs += [(f"calibrate_view {s}", lambda s=s: calibrate_view(obs, TargetSpec(R1, R2, 3.0), solver=s))
+        jobs = [("refine_view", lambda obs=obs, K0=K0, T0=T0: refine_view(obs.edges, K0, T0, 3.0))]
+        jobs += [(f"calibrate_view {s}", lambda s=s, obs=obs: calibrate_view(obs, TargetSpec(R1, R2, 3.0), solver=s))
                  for s in SOLVERS]
         for name, job in jobs:
             job()

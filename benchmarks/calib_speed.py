@@ -33,10 +33,11 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE.parent), str(HERE)]
 
+from calib_render import SPEC, Renderer, default_cache_dir, frame_plans  # noqa: E402
+
 from calib.calibrate import calibrate_view  # noqa: E402
 from calib.rings import detect_rings  # noqa: E402
 from calib.types import CalibrationError  # noqa: E402
-from calib_render import SPEC, Renderer, default_cache_dir, frame_plans  # noqa: E402
 
 BAR_MS = 50.0
 
@@ -58,7 +59,7 @@ def time_frame(jpeg: np.ndarray, repeats: int) -> dict[str, np.ndarray] | str:
             sw, sc, _ = _timed(calibrate_view, obs, SPEC, solver="refine")
         except CalibrationError as exc:
             return str(exc)
-        for k, v in zip(runs, (jw, jc, dw, dc, sw, sc)):
+        for k, v in zip(runs, (jw, jc, dw, dc, sw, sc), strict=True):
             runs[k].append(v)
     out = {k: np.array(v) for k, v in runs.items()}
     out["total_wall"] = out["detect_wall"] + out["solve_wall"]
@@ -85,7 +86,7 @@ def main() -> int:
 
     detect_rings(cv2.imdecode(jpegs[0], cv2.IMREAD_COLOR), SPEC)  # warm-up: imports, OpenCV's first calls
     best, allruns, fails = {}, {}, []
-    for p, jpeg in zip(plans, jpegs):
+    for p, jpeg in zip(plans, jpegs, strict=True):
         r = time_frame(jpeg, args.repeats)
         if isinstance(r, str):
             fails.append(f"{p.name}: {r}")

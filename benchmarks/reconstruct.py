@@ -100,7 +100,7 @@ def _iou(out: Path, scene: Path) -> float:
     z = np.load(out / ".turntable" / "silhouettes.npz")
     names = sorted(p.name for p in (scene / "images").iterdir())
     ious = []
-    for m, n in zip(z["masks"], names):
+    for m, n in zip(z["masks"], names, strict=True):
         g = cv2.imread(str(scene / "masks" / (Path(n).stem + ".png")), cv2.IMREAD_GRAYSCALE) > 127
         ious.append((m & g).sum() / max((m | g).sum(), 1))
     return float(np.mean(ious))
@@ -144,7 +144,7 @@ def main(argv: list[str]) -> None:
     print("| sequence | IoU mean | f err % | hull Chamfer mm (% diag) | fused Chamfer mm (% diag) | fused/hull | "
           "chosen | points acc90 mm | completeness % | hull run s | fusion stage s | stages (hull run) |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for folder, obj, bd, _ in jobs:
+    for folder, _obj, _bd, _ in jobs:
         scene = Path(folder)
         out = cache / "out" / scene.name
         shutil.rmtree(out, ignore_errors=True)

@@ -15,8 +15,8 @@ import datetime
 import json
 import os
 import platform
-import tempfile
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -76,7 +76,7 @@ def main() -> None:
         t3 = time.perf_counter()
         with tempfile.TemporaryDirectory() as d:
             export_mesh(mesh, d)
-            frames = list(zip(names, Ts))
+            frames = list(zip(names, Ts, strict=True))
             export_colmap(K, 1280, 960, frames, Path(d) / "colmap")
             export_nerfstudio(K, 1280, 960, frames, d, ply_file_path="model.ply")
         t4 = time.perf_counter()
@@ -84,7 +84,8 @@ def main() -> None:
         d_gt, _ = distances(gt_pts, mesh.vertices_table, mesh.faces)
         d_mesh, _ = distances(mesh.vertices_table, np.asarray(gt.vertices), np.asarray(gt.faces))
         print(f"| {res} | {hull.voxel_mm:.2f} | {st.n_faces} | {st.watertight} | {st.volume_mm3 / gt.volume:.3f} "
-              f"| {d_gt.mean():.2f} / {np.percentile(d_gt, 95):.2f} | {d_mesh.mean():.2f} / {np.percentile(d_mesh, 95):.2f} "
+              f"| {d_gt.mean():.2f} / {np.percentile(d_gt, 95):.2f} "
+              f"| {d_mesh.mean():.2f} / {np.percentile(d_mesh, 95):.2f} "
               f"| {t1 - t0:.1f} | {t2 - t1:.1f} | {t3 - t2:.1f} | {t4 - t3:.1f} |")
 
 

@@ -72,12 +72,12 @@ def main(argv: list[str]) -> None:
         t0 = time.perf_counter()
         res = estimate_silhouettes(imgs, K, T, spec)
         dt = (time.perf_counter() - t0) / len(imgs)
-        ious = np.array([(m & g).sum() / max((m | g).sum(), 1) for m, g in zip(res.masks, gts)])
+        ious = np.array([(m & g).sum() / max((m | g).sum(), 1) for m, g in zip(res.masks, gts, strict=True)])
         rejected = [i for i, s in enumerate(res.status) if s.startswith("rejected")]
         conservative = sum(s.startswith("conservative") for s in res.status)
         kept = [i for i in range(len(imgs)) if i not in rejected]
         missed = max((float((g & ~(m | u)).sum() / max(g.sum(), 1)) for m, u, g in
-                      zip(res.masks[kept], res.unknown[kept], gts[kept])), default=0.0)
+                      zip(res.masks[kept], res.unknown[kept], gts[kept], strict=True)), default=0.0)
         dropped = ", ".join(f"{i}: {ious[i]:.3f}" for i in rejected) or "-"
         rows.append((folder.name, len(imgs), imgs.shape[2], imgs.shape[1], ious.mean(), ious.min(), conservative,
                      len(rejected), dropped, missed, dt))

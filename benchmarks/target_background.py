@@ -39,10 +39,10 @@ from PIL import Image
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from calib.calibrate import calibrate_view  # noqa: E402
 from calib.camera import look_at, plane_homography  # noqa: E402
-from calib.types import CalibrationError  # noqa: E402
 from calib.marks import align_pose_to_marks, read_turntable_angle  # noqa: E402
 from calib.rings import detect_rings  # noqa: E402
 from calib.target import TargetSpec  # noqa: E402
+from calib.types import CalibrationError  # noqa: E402
 from turntable.pattern import BACKGROUND_COLOURS, _png, relative_luminance, sheet_layout  # noqa: E402
 
 SPEC = TargetSpec(80.0, 50.0, 3.0)
@@ -120,7 +120,8 @@ def _hex(rgb) -> str:
 
 def main() -> None:
     rng = np.random.default_rng(3)
-    print("| ground | sRGB | relative luminance | photos calibrated | worst f error % | worst pose error after marks, deg |")
+    print("| ground | sRGB | relative luminance | photos calibrated | worst f error % "
+          "| worst pose error after marks, deg |")
     print("|---|---|---:|---:|---:|---:|")
     for name, rgb in grounds():
         found, n, f_err, a_err = measure(rgb, rng)

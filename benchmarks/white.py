@@ -58,7 +58,7 @@ def run(folder: Path) -> tuple:
     imgs, gts, K, T, spec = load_sequence(folder)
     t0 = time.perf_counter()
     res = estimate_silhouettes(imgs, K, T, spec)
-    ious = np.array([(m & g).sum() / max((m | g).sum(), 1) for m, g in zip(res.masks, gts)])
+    ious = np.array([(m & g).sum() / max((m | g).sum(), 1) for m, g in zip(res.masks, gts, strict=True)])
     keep = [i for i, s in enumerate(res.status) if not s.startswith("rejected")]
     carve = res.masks | res.unknown
     missed = max((float((gts[i] & ~carve[i]).sum() / max(gts[i].sum(), 1)) for i in keep), default=1.0)
@@ -93,7 +93,8 @@ def main(argv: list[str]) -> None:
           "| hull Chamfer % diag | largest piece | s |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for name, mean, lo, cons, rej, missed, ch, ch_big, dt in rows:
-        print(f"| {name} | {mean:.3f} | {lo:.3f} | {cons} | {rej} | {missed:.3f} | {ch:.2f} | {ch_big:.2f} | {dt:.0f} |")
+        print(f"| {name} | {mean:.3f} | {lo:.3f} | {cons} | {rej} | {missed:.3f} | {ch:.2f} | {ch_big:.2f} "
+              f"| {dt:.0f} |")
     if tmp is not None:
         tmp.cleanup()
 

@@ -17,10 +17,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from synthetic_images import look_at_T, render_target_photo
 
 from calib.camera import angle_between_deg
 from calib.target import TargetSpec
-from synthetic_images import look_at_T, render_target_photo
 from turntable.cameras_io import read_cameras
 from turntable.cli import main
 
@@ -123,7 +123,7 @@ def test_json_list_for_several_images_in_order(photos, capsys):
     assert rc == 0, err
     recs = json.loads(out)
     assert isinstance(recs, list) and [r["image"] for r in recs] == [str(photos[n].path) for n in names]
-    for r, n in zip(recs, names):
+    for r, n in zip(recs, names, strict=True):
         _check_against_gt(r, photos[n])
 
 

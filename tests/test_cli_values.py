@@ -6,8 +6,10 @@ from turntable.cli import main
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["reconstruct", "IMAGES", "--r-outer", "80", "--r-inner", "50", "--step-deg", "0"], "--step-deg must be a non-zero"),
-    (["reconstruct", "IMAGES", "--r-outer", "80", "--r-inner", "50", "--step-deg", "nan"], "--step-deg must be a non-zero"),
+    (["reconstruct", "IMAGES", "--r-outer", "80", "--r-inner", "50", "--step-deg", "0"],
+     "--step-deg must be a non-zero"),
+    (["reconstruct", "IMAGES", "--r-outer", "80", "--r-inner", "50", "--step-deg", "nan"],
+     "--step-deg must be a non-zero"),
     (["reconstruct", "IMAGES", "--r-outer", "inf", "--r-inner", "50"], "--r-outer must be a positive number"),
     (["reconstruct", "IMAGES", "--r-outer", "80", "--r-inner", "-50"], "--r-inner must be a positive number"),
     (["reconstruct", "IMAGES", "--r-outer", "80", "--r-inner", "50", "--stroke", "0"], "--stroke must be a positive"),

@@ -133,10 +133,9 @@ def test_an_output_folder_of_an_older_version_has_its_known_files_replaced(tmp_p
 def test_leaving_without_publishing_changes_nothing(tmp_path):
     out = tmp_path / "scan"
     _publish(out, OLD)
-    with pytest.raises(RuntimeError):
-        with OutputFolder(out) as folder:
-            _stage(folder, NEW)
-            raise RuntimeError("a stage failed")
+    with pytest.raises(RuntimeError), OutputFolder(out) as folder:
+        _stage(folder, NEW)
+        raise RuntimeError("a stage failed")
     assert _contents(out) == OLD and _leftovers(out) == []
 
 
@@ -194,9 +193,8 @@ def test_a_run_killed_at_any_step_of_the_switch_leaves_one_whole_set(tmp_path, m
 
 def test_a_second_run_into_the_same_out_is_refused_with_the_holder_s_pid(tmp_path):
     out = tmp_path / "scan"
-    with OutputFolder(out):
-        with pytest.raises(UserError, match=rf"in use by pid {os.getpid()}"):
-            OutputFolder(out).__enter__()
+    with OutputFolder(out), pytest.raises(UserError, match=rf"in use by pid {os.getpid()}"):
+        OutputFolder(out).__enter__()
     with OutputFolder(out):  # released on leaving
         pass
 
@@ -316,9 +314,9 @@ def test_a_full_disk_at_any_stage_fails_fast_naming_the_file_and_keeps_the_previ
         budgets = [0, 16 << 10, int(0.6 * sum(sizes)), int(0.9 * sum(sizes))]
     reports = []
     # every stage recomputed (cache files, then the outputs); and a new grid only (the hull's cache file first)
-    for budgets, extra in ((budgets, ["--overwrite"]), ([0], ["--resolution", "40"])):
+    for run_budgets, extra in ((budgets, ["--overwrite"]), ([0], ["--resolution", "40"])):
         r = subprocess.run([*(prefix or []), sys.executable, str(HERE / "disk_full.py"), str(good[0]),
-                            json.dumps(budgets), "--", *_args(scene, Path("OUT"), *extra)],
+                            json.dumps(run_budgets), "--", *_args(scene, Path("OUT"), *extra)],
                            capture_output=True, text=True, timeout=600)
         assert r.returncode == 0, r.stderr
         reports.append(json.loads(r.stdout))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 import xml.etree.ElementTree as ET
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,7 +23,7 @@ MM_TOL = 1e-3        # SVG geometry, mm
 
 def test_pdf_is_a4_with_a_valid_xref(tmp_path):
     path = write_pattern(tmp_path / "t.pdf", SPEC, paper="a4")
-    data = open(path, "rb").read()
+    data = Path(path).read_bytes()
     assert data.startswith(b"%PDF-1.") and data.rstrip().endswith(b"%%EOF")
     box = [float(v) for v in re.search(rb"/MediaBox \[([^\]]*)\]", data).group(1).split()]
     assert np.allclose(box, [0, 0, 595.28, 841.89], atol=PT_TOL)
@@ -36,7 +37,7 @@ def test_pdf_is_a4_with_a_valid_xref(tmp_path):
 
 
 def test_pdf_letter_media_box(tmp_path):
-    data = open(write_pattern(tmp_path / "t.pdf", SPEC, paper="letter"), "rb").read()
+    data = Path(write_pattern(tmp_path / "t.pdf", SPEC, paper="letter")).read_bytes()
     box = [float(v) for v in re.search(rb"/MediaBox \[([^\]]*)\]", data).group(1).split()]
     assert np.allclose(box, [0, 0, 612.0, 792.0], atol=PT_TOL)
 
@@ -79,7 +80,9 @@ def test_png_has_the_paper_size_at_its_dpi_and_a_50_mm_bar(tmp_path):
     assert ink_mm == pytest.approx(50.0, abs=0.5 / px * 2)
     # rings where the spec says, with table +X along the sheet's x
     cx, cy = sheet_layout(SPEC, "a4").centre_mm
-    at = lambda x_mm, z_mm: img[int(round((cy + z_mm) * px - 0.5)), int(round((cx + x_mm) * px - 0.5))]
+    def at(x_mm, z_mm):
+        return img[int(round((cy + z_mm) * px - 0.5)), int(round((cx + x_mm) * px - 0.5))]
+
     assert at(80.0, 0.0) == 0 and at(-50.0, 0.0) == 0 and at(0.0, 80.0) == 0
     assert at(83.5, 0.0) == 255 and at(65.0, 0.0) == 255 and at(0.0, 0.0) == 255
 
@@ -144,12 +147,12 @@ def test_printed_png_photographed_calibrates_back_to_its_own_geometry(tmp_path):
     reader give back the camera that took the photo, the printed radii's ratio
     and the printed 0 deg mark (the sheet's table frame)."""
     import cv2
+    from synthetic_images import look_at_T
 
     from calib.calibrate import calibrate_view
     from calib.camera import camera_centre_table, plane_homography
     from calib.marks import align_pose_to_marks
     from calib.rings import detect_rings, pencil_ratio
-    from synthetic_images import look_at_T
 
     dpi = 150.0
     sheet = np.asarray(Image.open(write_pattern(tmp_path / "t.png", SPEC, paper="a4", dpi=dpi)).convert("L"))

@@ -14,9 +14,9 @@ import struct
 import numpy as np
 import pytest
 import trimesh
+from rrd_util import rrd_rows
 
 from calib.camera import camera_centre_table
-from rrd_util import rrd_rows
 from turntable.cameras_io import read_cameras
 from turntable.cli import main
 from turntable.synth import SynthOptions, make_sequence
@@ -74,7 +74,7 @@ def test_cameras_match_ground_truth(run, scene):
     seq, gt = read_cameras(out / "cameras.json"), read_cameras(scene / "cameras_gt.json")
     assert abs(seq.intrinsics.focal_px / gt.intrinsics.focal_px - 1) < FOCAL_REL_TOL
     assert len(seq.ok_frames()) == 12
-    for f, g in zip(seq.frames, gt.frames):
+    for f, g in zip(seq.frames, gt.frames, strict=True):
         err = np.linalg.norm(camera_centre_table(f.T_cam_table) - camera_centre_table(g.T_cam_table))
         assert err < CENTRE_TOL_MM, (f.image, err)
 
@@ -306,7 +306,7 @@ def test_silhouettes_confined_to_a_small_volume_touch_its_side_and_top(scene):
 
     def touches(r, h):
         vol = WorkingVolume(radius_mm=r, height_mm=h, max_radius_mm=200.0, max_height_mm=300.0, source="test")
-        confined = np.stack([m & cylinder_region(K, T, (640, 480), r, h) for m, T in zip(masks, Ts)])
+        confined = np.stack([m & cylinder_region(K, T, (640, 480), r, h) for m, T in zip(masks, Ts, strict=True)])
         return mask_touches(confined, K, Ts, vol)
 
     assert touches(60.0, 160.0) == ([], [])  # the vase: 35 mm from the axis, 110 mm tall

@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from synthetic_images import look_at_T, render_target_photo
 
 from calib.camera import circle_conic, circle_points_table, project_points
 from calib.conics import sampson_distance
@@ -12,7 +13,6 @@ from calib.edges import conic_samples, find_stroke_edges, line_conic_offsets
 from calib.rings import detect_rings, edge_conic, pencil_ratio
 from calib.target import TargetSpec
 from calib.types import CalibrationError
-from synthetic_images import look_at_T, render_target_photo
 
 SPEC = TargetSpec(r_outer_mm=100.0, r_inner_mm=62.5, stroke_mm=3.0)
 W, H = 1280, 960
@@ -252,7 +252,7 @@ def test_rings_found_as_fully_at_48_mp_as_at_1280():
     T = np.array(frame["T_cam_table"])
     small = detect_rings(img, spec)
     big = detect_rings(cv2.resize(img, (8064, 6048), interpolation=cv2.INTER_CUBIC), spec)
-    for c_small, c_big in zip(_coverage(small), _coverage(big)):
+    for c_small, c_big in zip(_coverage(small), _coverage(big), strict=True):
         assert c_big >= c_small - COVERAGE_LOSS_TOL, (c_small, c_big)
     for d in _edge_errors(big, S @ K, T, spec):
         assert np.median(d) / s < EDGE_MEDIAN_TOL_PX

@@ -6,6 +6,7 @@ import json
 import re
 import xml.etree.ElementTree as ET
 import zlib
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -18,8 +19,15 @@ from calib.marks import align_pose_to_marks, read_turntable_angle
 from calib.rings import detect_rings
 from calib.target import TargetSpec
 from turntable.cli import main
-from turntable.pattern import (BACKGROUND_COLOURS, MIN_BACKGROUND_LUMINANCE, SHEET_MARGIN_MM, parse_background,
-                               relative_luminance, sheet_layout, write_pattern)
+from turntable.pattern import (
+    BACKGROUND_COLOURS,
+    MIN_BACKGROUND_LUMINANCE,
+    SHEET_MARGIN_MM,
+    parse_background,
+    relative_luminance,
+    sheet_layout,
+    write_pattern,
+)
 
 SPEC = TargetSpec(r_outer_mm=80.0, r_inner_mm=50.0, stroke_mm=3.0)
 GREEN = BACKGROUND_COLOURS["green"]
@@ -52,7 +60,7 @@ def test_png_ground_is_the_colour_under_black_ink(tmp_path):
     assert at(15.0, 200.0) == GREEN                       # far from the target, still the printable area
     assert at(cx + 80.0, cy) == (0, 0, 0)                 # the outer ring stays black
     assert at(1.0, 1.0) == (255, 255, 255)                # the unprintable margin stays paper
-    assert SHEET_MARGIN_MM > 1.0 + 1.0 / px
+    assert 1.0 + 1.0 / px < SHEET_MARGIN_MM
 
 
 def test_svg_and_pdf_fill_the_printable_area(tmp_path):
@@ -68,13 +76,13 @@ def test_svg_and_pdf_fill_the_printable_area(tmp_path):
     assert [r.get("fill") for r in plain.findall("s:rect", ns)][0] == "#ffffff"
     assert not [r for r in plain.findall("s:rect", ns) if r.get("id") == "ground"]
 
-    data = open(write_pattern(tmp_path / "t.pdf", SPEC, background="green"), "rb").read()
+    data = Path(write_pattern(tmp_path / "t.pdf", SPEC, background="green")).read_bytes()
     stream = re.search(rb"stream\n(.*)\nendstream", data, re.S).group(1)
     ops = zlib.decompress(stream).decode("latin-1").splitlines()
     r, gg, b = (v / 255 for v in GREEN)
     assert ops[1] == f"{r:.4f} {gg:.4f} {b:.4f} rg 5.0000 5.0000 200.0000 287.0000 re f"
     assert ops[2].startswith("0 g 0 G")                   # ink is black again before the rings
-    plain_pdf = open(write_pattern(tmp_path / "w.pdf", SPEC), "rb").read()
+    plain_pdf = Path(write_pattern(tmp_path / "w.pdf", SPEC)).read_bytes()
     assert b" rg " not in zlib.decompress(re.search(rb"stream\n(.*)\nendstream", plain_pdf, re.S).group(1))
 
 

@@ -8,8 +8,14 @@ import pytest
 
 from calib.conics import fit_conic
 from turntable.errors import UserError
-from turntable.worksize import (MAX_DEFAULT_PIXELS, MIN_RING_PX, WorkSize, choose_work_size, parse_work_size,
-                                scale_matrix)
+from turntable.worksize import (
+    MAX_DEFAULT_PIXELS,
+    MIN_RING_PX,
+    WorkSize,
+    choose_work_size,
+    parse_work_size,
+    scale_matrix,
+)
 
 PX_TOL = 1e-9  # exact maps: pixels
 CENTROID_TOL_PX = 0.02  # a blob's centroid after cv2.resize, work pixels

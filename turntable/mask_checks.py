@@ -40,7 +40,7 @@ def check_masks(masks: np.ndarray, names: list[str], masks_dir: Path) -> None:
         return
     share = masks.reshape(V, -1).mean(axis=1)
     full = share > _FULL
-    inverted = np.array([s > _INVERTED and _touches_all_borders(m) for s, m in zip(share, masks)])
+    inverted = np.array([s > _INVERTED and _touches_all_borders(m) for s, m in zip(share, masks, strict=True)])
 
     def listed(sel: np.ndarray) -> str:
         idx = np.flatnonzero(sel)

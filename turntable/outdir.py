@@ -26,6 +26,7 @@ atomic writes) are removed by the next run.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import os
@@ -113,10 +114,8 @@ class _Lock:
 
     def release(self) -> None:
         if self.fd is not None:
-            try:
+            with contextlib.suppress(OSError):
                 os.ftruncate(self.fd, 0)
-            except OSError:
-                pass
             os.close(self.fd)  # closing the descriptor releases the lock
             self.fd = None
 
@@ -150,7 +149,7 @@ class OutputFolder:
         self._lock = _Lock(self.meta / "lock")
 
     # -- lifetime -----------------------------------------------------------------------
-    def __enter__(self) -> "OutputFolder":
+    def __enter__(self) -> OutputFolder:
         if self.out.exists() and not self.out.is_dir():
             raise UserError(f"--out {self.out}: exists and is a file, not a folder")
         self.created = not self.out.exists()

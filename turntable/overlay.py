@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import cv2
 import numpy as np
 
@@ -34,10 +36,8 @@ def draw_calibration(image_bgr: np.ndarray, obs: TargetObservation | None, cal: 
         for key in ("outer", "inner"):
             C = obs.conics.get(key)
             if C is not None:
-                try:
+                with contextlib.suppress(ValueError):
                     _poly(img, ellipse_points(conic_to_ellipse(C), 360), (255, 255, 0), thick)
-                except ValueError:
-                    pass
     if cal is not None:
         K, T = cal.intrinsics.K, cal.T_cam_table
         for r in (r_outer_mm, r_inner_mm):

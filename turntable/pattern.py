@@ -316,7 +316,7 @@ def _svg(spec: TargetSpec, sheet: SheetLayout, ground=(255, 255, 255)) -> str:
     W, H = sheet.width_mm, sheet.height_mm
     cx, cy = sheet.centre_mm
     f = "{:.4f}".format
-    out = [f'<?xml version="1.0" encoding="UTF-8"?>',
+    out = ['<?xml version="1.0" encoding="UTF-8"?>',
            f'<svg xmlns="http://www.w3.org/2000/svg" width="{_fmt(W)}mm" height="{_fmt(H)}mm" '
            f'viewBox="0 0 {_fmt(W)} {_fmt(H)}">',
            f'<title>turntable target r_outer={_fmt(spec.r_outer_mm)} r_inner={_fmt(spec.r_inner_mm)} '

@@ -109,7 +109,7 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
     loaded = frames_stage.load(opts, progress, seq)  # every frame decoded once; only the work size is kept
     ws = loaded.work
     frames = [Frame(n, im, "" if im is not None else why) for n, im, why in
-              zip(loaded.names, loaded.images, loaded.failures)]
+              zip(loaded.names, loaded.images, loaded.failures, strict=True)]
     for f in frames:
         if f.bgr is None:
             skipped[f.name] = f.error

@@ -143,7 +143,7 @@ class Recorder:
         """End the recording without writing anything."""
         self.rec.disconnect()
 
-    def __enter__(self) -> "Recorder":
+    def __enter__(self) -> Recorder:
         return self
 
     def __exit__(self, exc_type, *exc) -> None:

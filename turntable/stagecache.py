@@ -101,7 +101,7 @@ def _field_problem(arrays: dict[str, np.ndarray], fields: Fields) -> str | None:
             return f"no field {name!r}"
         if a.dtype.kind not in kinds or a.ndim != len(shape):
             return f"{name} is {a.dtype} {a.shape}, expected {len(shape)}-d of kind {kinds!r}"
-        for got, want in zip(a.shape, shape):
+        for got, want in zip(a.shape, shape, strict=True):
             if isinstance(want, str):
                 want = sizes.setdefault(want, got)
             if want is not None and got != want:

@@ -23,7 +23,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "pattern": ("turntable.cli.pattern", "write the printable target (PDF, SVG or PNG)"),
     "synth": ("turntable.cli.synth", "render a synthetic turntable sequence with ground truth"),
     "calibrate-sequence": ("turntable.cmd_sequence", "calibrate a whole turntable sequence into cameras.json"),
-    "reconstruct": ("turntable.cli.reconstruct", "photos of an object on the turntable -> coloured mesh + Rerun recording"),
+    "reconstruct": ("turntable.cli.reconstruct",
+                    "photos of an object on the turntable -> coloured mesh + Rerun recording"),
     "view": ("turntable.cli.view", "open a Rerun recording written by reconstruct"),
 }
 

@@ -22,8 +22,8 @@ from calib.target import TargetSpec
 from calib.types import CalibrationError, TargetObservation, ViewCalibration
 
 from ..errors import UserError
-from .args import add_target_arguments, target_from_args
 from ..images import exif_focal_report, focal_warning, read_image
+from .args import add_target_arguments, target_from_args
 
 log = logging.getLogger(__name__)
 

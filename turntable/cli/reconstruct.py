@@ -6,12 +6,12 @@ import math
 import sys
 from pathlib import Path
 
-from .args import add_target_arguments, target_from_args
 from ..errors import UserError
 from ..images import focal_warning
 from ..progress import Progress
 from ..reconstruct import ReconstructOptions, reconstruct
 from ..worksize import parse_work_size
+from .args import add_target_arguments, target_from_args
 
 
 def add_arguments(parser) -> None:
@@ -22,10 +22,13 @@ def add_arguments(parser) -> None:
                         help="known turntable step per frame (motorised tables); checked against the marks")
     parser.add_argument("--masks", metavar="DIR", help="use these silhouettes (matched to frames by file stem)")
     parser.add_argument("--cameras", metavar="JSON", help="use this cameras.json instead of calibrating")
-    parser.add_argument("--intrinsics", metavar="FILE", help="OpenCV calibration (YAML/JSON) to use as known intrinsics")
-    parser.add_argument("--resolution", type=int, default=256, metavar="N", help="carving grid resolution (default 256)")
+    parser.add_argument("--intrinsics", metavar="FILE",
+                        help="OpenCV calibration (YAML/JSON) to use as known intrinsics")
+    parser.add_argument("--resolution", type=int, default=256, metavar="N",
+                        help="carving grid resolution (default 256)")
     parser.add_argument("--max-faces", type=int, default=100_000, metavar="N", help="decimate to at most N faces")
-    parser.add_argument("--every", type=int, default=1, metavar="N", help="use every N-th frame (videos, dense folders)")
+    parser.add_argument("--every", type=int, default=1, metavar="N",
+                        help="use every N-th frame (videos, dense folders)")
     parser.add_argument("--frames", type=int, metavar="N",
                         help="use N frames spread evenly over the input (not with --every)")
     parser.add_argument("--max-rejections", type=int, default=None, metavar="K",
@@ -74,7 +77,8 @@ def options_from_args(args) -> ReconstructOptions:
         input=Path(args.input), out=Path(args.out), spec=spec, step_deg=args.step_deg,
         masks_dir=Path(args.masks) if args.masks else None, cameras=Path(args.cameras) if args.cameras else None,
         intrinsics=Path(args.intrinsics) if args.intrinsics else None, resolution=args.resolution,
-        max_faces=args.max_faces, every=args.every, frames=args.frames, fusion=not args.no_fusion, overwrite=args.overwrite,
+        max_faces=args.max_faces, every=args.every, frames=args.frames, fusion=not args.no_fusion,
+        overwrite=args.overwrite,
         spawn=args.spawn, export_colmap=args.export_colmap, export_nerfstudio=args.export_nerfstudio,
         max_rejections=args.max_rejections, work_size=work_size)
 

@@ -65,7 +65,7 @@ def calibrate(loaded, opts: ReconstructOptions, progress: Progress, key: str,
         except UserError as exc:
             raise UserError(f"{opts.input}: {exc}") from None
     seq = replace(seq, meta={**seq.meta, "stage_key": key})
-    names = [n for n, o in zip(loaded.names, observations) if o is not None]
+    names = [n for n, o in zip(loaded.names, observations, strict=True) if o is not None]
     conics = np.array([[o.conics["outer"], o.conics["inner"]] for o in observations if o is not None])
     conics = conics.reshape(-1, 2, 3, 3)
     cam_path = cache.dir / "cameras.json"
@@ -78,7 +78,7 @@ def calibrate(loaded, opts: ReconstructOptions, progress: Progress, key: str,
 def conics_from_arrays(d: dict) -> dict:
     if "names" not in d:
         return {}
-    return {str(n): {"outer": c[0], "inner": c[1]} for n, c in zip(d["names"], d["conics"])}
+    return {str(n): {"outer": c[0], "inner": c[1]} for n, c in zip(d["names"], d["conics"], strict=True)}
 
 
 def check_given(seq: SequenceCalibration, good: list[Frame], opts: ReconstructOptions,

@@ -54,7 +54,7 @@ def write_outputs(staging: Path, opts, seq, names, mesh, fused, progress) -> dic
 
             # file paths relative to OUT (where transforms.json is published), pointing at the user's photos
             rel = [(frame_name(os.path.relpath(p, opts.out)), T_by_name[n])
-                   for n, p in zip(names, frame_files(opts, names))]
+                   for n, p in zip(names, frame_files(opts, names), strict=True)]
             files["nerfstudio"] = export_nerfstudio(intr.K, intr.width, intr.height, rel, out, dist=intr.dist,
                                                     ply_file_path="model.ply")
     return files

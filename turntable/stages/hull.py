@@ -101,17 +101,17 @@ def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progres
             side, top = mask_touches(sil.masks[keep], K, Ts[keep], vol)
             touch = (len(side) >= MIN_TOUCH_VIEWS, len(top) >= MIN_TOUCH_VIEWS)
             why = [f"the silhouettes of {len(v)} views reach its {w}" for w, v, t in
-                   zip(("side", "top"), (side, top), touch) if t]
+                   zip(("side", "top"), (side, top), touch, strict=True) if t]
         if not why:  # the silhouettes fit: carve, and ask the hull
             hull = carve(sil, keep, key, vol)
             touch = (hull.meta["touches_side"] > 0, hull.meta["touches_top"] > 0)
-            why = [f"the carved hull reaches its {w}" for w, t in zip(("side", "top"), touch) if t]
+            why = [f"the carved hull reaches its {w}" for w, t in zip(("side", "top"), touch, strict=True) if t]
             if automatic and why:
                 # carved from masks | unknown: the doubtful pixels (carved only where a view is sure of the
                 # background) reach the wall, not the object's own silhouette, which fits. Growing on them
                 # would chase the doubt to the edge of the view: note it, and keep the volume.
                 doubtful_wall = [f"doubtful silhouette pixels (not the object's sure silhouette) let the hull reach "
-                                 f"its {w}" for w, t in zip(("side", "top"), touch) if t]
+                                 f"its {w}" for w, t in zip(("side", "top"), touch, strict=True) if t]
                 progress.note(f"working volume: {'; '.join(doubtful_wall)}")
                 why = []
         if not why:

@@ -38,7 +38,7 @@ def read_masks(masks_dir: Path, names: list[str], ws: WorkSize,
     out = np.zeros((len(names), h, w), bool)
     empty: dict[str, str] = {}
     labels: list[str] = []
-    for i, (n, p) in enumerate(zip(names, mask_files(masks_dir, names))):
+    for i, (n, p) in enumerate(zip(names, mask_files(masks_dir, names), strict=True)):
         if p is None:
             raise UserError(f"--masks {masks_dir}: no mask for frame {n} (expected {Path(n).stem}.png)")
         m = read_image(p)
@@ -97,7 +97,7 @@ def silhouettes_stage(images_rgb, names, K, Ts, opts, cache, key, progress, vol,
             unknown = np.zeros_like(masks)
             status = ["ok" if m.any() else
                       f"rejected: the mask is empty ({empty.get(n, 'nothing left after undistortion')})"
-                      for n, m in zip(names, masks)]
+                      for n, m in zip(names, masks, strict=True)]
         else:
             from recon.silhouettes import estimate_silhouettes
 
@@ -122,10 +122,10 @@ def is_greyscale(images_rgb: list[np.ndarray]) -> bool:
     return bool(sample) and all(int(np.ptp(im.astype(np.int16), axis=2).max()) <= 2 for im in sample)
 
 
-def describe(names: list[str], sil: "Silhouettes", shown: int = 8) -> str:
+def describe(names: list[str], sil: Silhouettes, shown: int = 8) -> str:
     """Each view's silhouette, as its share of the image and its verdict (for an error that stops the run)."""
     share = sil.masks.reshape(len(names), -1).mean(axis=1)
-    items = [f"{n} {100 * a:.1f} % {st}" for n, a, st in zip(names, share, sil.status)]
+    items = [f"{n} {100 * a:.1f} % {st}" for n, a, st in zip(names, share, sil.status, strict=True)]
     more = f" and {len(items) - shown} more" if len(items) > shown else ""
     return "silhouettes (share of the image, verdict): " + ", ".join(items[:shown]) + more
 
@@ -133,7 +133,7 @@ def describe(names: list[str], sil: "Silhouettes", shown: int = 8) -> str:
 def verdicts(names, status) -> tuple[list[int], dict[str, str], dict[str, str]]:
     """Kept view indices, rejected frames and conservative (kept) frames, each with its reason."""
     keep, rejected, conservative = [], {}, {}
-    for i, (n, s) in enumerate(zip(names, status)):
+    for i, (n, s) in enumerate(zip(names, status, strict=True)):
         if s == "ok":
             keep.append(i)
         elif s.startswith("conservative"):
