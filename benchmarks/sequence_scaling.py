@@ -8,12 +8,15 @@ after the per-frame stage (the joint fit: the time after the progress line
 ``2N/2N``, i.e. the fit, the marks read again and writing cameras.json),
 the peak memory, seconds per frame for both, and the focal length found.
 
-Cost should be linear in N: seconds per frame about constant down the table.
+Cost should be linear in N: seconds per frame about constant down the table
+(on a loaded machine the wall times are noisy: ``--kernels`` times the joint
+fit's residuals and Jacobian per row on synthetic problems instead).
 ``--tree DIR`` runs another checkout's code (e.g. ``git archive HEAD | tar -x
 -C DIR``) to compare before and after a change.
 
     .venv/bin/turntable synth /tmp/seq500 --frames 500 --size 640x480 --focal-px 750 --step-deg 0.72 --seed 1
     nice .venv/bin/python benchmarks/sequence_scaling.py /tmp/seq500/images [--frames 60 120 250 500] [--tree DIR]
+    nice .venv/bin/python benchmarks/sequence_scaling.py --kernels [--frames 60 120 250 500]
 """
 
 from __future__ import annotations
@@ -60,13 +63,61 @@ def run_once(images: Path, n: int, tree: Path, timeout_s: float) -> dict:
                 "peak_mb": usage.ru_maxrss / 1024, "focal_px": focal, "timed_out": timed_out}
 
 
+def kernels(frame_counts, points_per_edge: int = 100) -> None:
+    """Time per row of the joint fit's residuals and Jacobian on synthetic turntable problems (no images).
+
+    Four exact edge circles per frame (``points_per_edge`` points each, as
+    ``POINT_BUDGET`` gives from 50 frames on) seen by a camera 450 mm away;
+    best of 5. Flat ns/row down the table: linear cost, whatever the load.
+    """
+    import numpy as np
+
+    from calib.camera import circle_points_table, look_at, make_T, project_points
+    from calib.sequence_model import _FrameEdges, _Problem, _State, rot_y
+    from calib.types import EdgePoints, TargetObservation
+
+    K = np.array([[750.0, 0.0, 319.5], [0.0, 750.0, 239.5], [0.0, 0.0, 1.0]])
+    T_ca = look_at(np.array([0.0, 225.0, -390.0]), np.zeros(3))
+    print(f"{'frames':>6} {'rows':>7} {'residuals ms':>12} {'ns/row':>7} {'Jacobian ms':>12} {'ns/row':>7}")
+    for n in frame_counts:
+        theta = np.radians(np.arange(n) * 360.0 / n)
+        frames = []
+        for th in theta:
+            T = T_ca @ make_T(rot_y(th), np.zeros(3))
+            edges = tuple(EdgePoints(project_points(K, T, circle_points_table(r + s * 1.5, points_per_edge)), r, s)
+                          for r in (80.0, 50.0) for s in (-1, 1))
+            frames.append(_FrameEdges.from_observation(TargetObservation(edges, 640, 480), points_per_edge))
+        st = _State(K=K, dist=np.zeros(5), stroke=3.0, R_cam_axis=T_ca[:3, :3], t_cam_axis=T_ca[:3, 3],
+                    d_xz=np.zeros(2), theta=theta)
+        p = _Problem(frames, st, ("f", "k1"), True, "turntable", free_theta=np.arange(n) > 0,
+                     mark_R=[T_ca[:3, :3] @ rot_y(th) for th in theta], mark_w=np.full(n, 50.0))
+        x = np.zeros(p.n_params)
+        t_res = t_jac = float("inf")
+        for _ in range(5):
+            t0 = time.perf_counter()
+            p.residuals(x)
+            t1 = time.perf_counter()
+            p.jacobian(x)
+            t_res, t_jac = min(t_res, t1 - t0), min(t_jac, time.perf_counter() - t1)
+        print(f"{n:>6} {p.n_rows:>7} {1e3 * t_res:12.1f} {1e9 * t_res / p.n_rows:7.0f} {1e3 * t_jac:12.1f} "
+              f"{1e9 * t_jac / p.n_rows:7.0f}", flush=True)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("images", type=Path, help="folder of a rendered turntable sequence")
+    ap.add_argument("images", type=Path, nargs="?", help="folder of a rendered turntable sequence")
     ap.add_argument("--frames", type=int, nargs="+", default=[60, 120, 250, 500])
     ap.add_argument("--tree", type=Path, default=ROOT, help="checkout whose code runs (default: this one)")
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per run before it is stopped")
+    ap.add_argument("--kernels", action="store_true",
+                    help="only time the joint fit's residuals and Jacobian per row on synthetic problems")
     args = ap.parse_args(argv)
+    if args.kernels:
+        sys.path.insert(0, str(args.tree.resolve()))
+        kernels(args.frames)
+        return 0
+    if args.images is None:
+        ap.error("the images folder is needed (or --kernels)")
     print(f"calibrate-sequence on {args.images} (code: {args.tree})")
     print(f"{'frames':>6} {'wall s':>8} {'s/frame':>8} {'frames s':>9} {'fit s':>8} {'fit s/frame':>11} "
           f"{'peak MB':>8} {'f px':>9}")
