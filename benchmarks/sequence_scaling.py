@@ -17,6 +17,23 @@ fit's residuals and Jacobian per row on synthetic problems instead).
     .venv/bin/turntable synth /tmp/seq500 --frames 500 --size 640x480 --focal-px 750 --step-deg 0.72 --seed 1
     nice .venv/bin/python benchmarks/sequence_scaling.py /tmp/seq500/images [--frames 60 120 250 500] [--tree DIR]
     nice .venv/bin/python benchmarks/sequence_scaling.py --kernels [--frames 60 120 250 500]
+
+Measured 2026-12-01 on the 2-core machine shared with other sessions (load 2.5-8.5,
+so wall times are upper bounds), ``/tmp/seq500``: 500 frames 640x480, f 750,
+step 0.72 deg, seed 1. "fit" = after the per-frame stage: the joint fit and
+the marks read a second time (about half of it at 250 frames).
+
+    code before b1664a1 (dense Jacobian and solve)   after (blocked, Schur complement)
+    frames  wall s  fit s  fit s/frame  peak MB      wall s  fit s  fit s/frame  peak MB  f px
+        60    42.4   25.5       0.424      167        43.5   11.7       0.196      157   749.110
+       120    68.7   44.3       0.369      291        50.8   20.1       0.168      220   749.148
+       250   188.2  129.0       0.516      716       176.8  100.6       0.403      365   749.133
+       500  1145.7  990.6       1.981     2115       476.5  175.4       0.351      644   749.138
+
+``--kernels`` (Jacobian per row, best of 5): 28.4 / 28.9 / 32.6 us before, 13.6 /
+9.3 / 9.9 us after at 60 / 250 / 500 frames. The super-linear part before was the
+covariance's non-BLAS ``einsum`` of the dense (rows, n_params) Jacobian with
+itself (rows x n_params^2 per fit stage) and the dense arrays themselves.
 """
 
 from __future__ import annotations
