@@ -141,7 +141,10 @@ def main(argv=None) -> int:
     for n in args.frames:
         r = run_once(args.images.resolve(), n, args.tree.resolve(), args.timeout)
         fit = r["wall_s"] - r["per_frame_stage_s"]
-        focal = f"{r['focal_px']:9.3f}" if r["focal_px"] is not None else ("  timeout" if r["timed_out"] else "   failed")
+        if r["focal_px"] is not None:
+            focal = f"{r['focal_px']:9.3f}"
+        else:
+            focal = "  timeout" if r["timed_out"] else "   failed"
         print(f"{n:>6} {r['wall_s']:8.1f} {r['wall_s'] / n:8.3f} {r['per_frame_stage_s']:9.1f} {fit:8.1f} "
               f"{fit / n:11.4f} {r['peak_mb']:8.0f} {focal}", flush=True)
     return 0

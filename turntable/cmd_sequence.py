@@ -31,7 +31,8 @@ __all__ = ["add_arguments", "run", "calibrate_folder", "summary_table"]
 def add_arguments(parser) -> None:
     parser.add_argument("input", metavar="INPUT", help="folder of photos in turntable order (natural sort), or a video")
     add_target_arguments(parser)
-    parser.add_argument("--every", type=int, default=1, metavar="N", help="use every N-th frame (videos, dense folders)")
+    parser.add_argument("--every", type=int, default=1, metavar="N",
+                        help="use every N-th frame (videos, dense folders)")
     parser.add_argument("--frames", type=int, metavar="N",
                         help="use N frames spread evenly over the input (not with --every)")
     parser.add_argument("--step-deg", type=float, metavar="D",
