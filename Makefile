@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 OUT ?= out/sample
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo test lint bench clean
 
 setup:
 	@bash scripts/setup.sh
@@ -11,8 +11,11 @@ setup:
 demo: setup
 	$(VENV)/bin/turntable reconstruct data/sample/images --r-outer 80 --r-inner 50 --stroke 3 --out $(OUT)
 
-test: setup
+test: setup lint
 	$(PY) -m pytest -q
+
+lint: setup
+	$(VENV)/bin/ruff check .
 
 bench: setup
 	for b in benchmarks/*.py; do $(PY) $$b || exit 1; done

@@ -96,7 +96,7 @@ def carve_open3d(masks, Ts, origin_centre, voxel, dims) -> np.ndarray:
     ext = dims * voxel - 1e-3 * voxel
     grid = o3d.geometry.VoxelGrid.create_dense(lo, np.zeros(3), voxel, *ext)
     intr = o3d.camera.PinholeCameraIntrinsic(W, H, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
-    for m, T in zip(masks, Ts):
+    for m, T in zip(masks, Ts, strict=True):
         params = o3d.camera.PinholeCameraParameters()
         params.intrinsic, params.extrinsic = intr, T
         grid.carve_silhouette(o3d.geometry.Image(m.astype(np.float32)), params, keep_voxels_outside_image=False)

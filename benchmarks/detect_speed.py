@@ -22,12 +22,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
+from synthetic_images import look_at_T, render_target_photo  # noqa: E402
+
 from calib import rings  # noqa: E402
 from calib.camera import circle_conic  # noqa: E402
 from calib.conics import sampson_distance  # noqa: E402
 from calib.target import TargetSpec  # noqa: E402
 from calib.types import CalibrationError  # noqa: E402
-from synthetic_images import look_at_T, render_target_photo  # noqa: E402
 
 W, H = 1280, 960
 N_FRAMES = 20

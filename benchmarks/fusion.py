@@ -190,7 +190,8 @@ def main() -> int:
     ap.add_argument("--views", type=int, default=36)
     args = ap.parse_args()
     print(f"# fusion benchmark — {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, "
-          f"{platform.machine()} {platform.processor() or ''}, {os.cpu_count()} CPUs, python {platform.python_version()}")
+          f"{platform.machine()} {platform.processor() or ''}, {os.cpu_count()} CPUs, "
+          f"python {platform.python_version()}")
     print()
     print("| object | hull voxel mm | Chamfer hull mm | Chamfer fused mm | fused/hull | pts acc90 mm | "
           "completeness @1.25 mm | points | range s | depth s | fuse s | surface s | stage s | regions kept | "

@@ -132,7 +132,8 @@ def main() -> None:
     print(f"turntable.synth scenes, objects {', '.join(args.objects)}, elevations "
           f"{', '.join(f'{e:g}' for e in args.elevations)} deg, {args.frames} frames each, 1280x960 JPEG 95. "
           f"Bars: median <= 0.1 deg, max <= 0.3 deg.\n")
-    print("| condition | read | median err (deg) | p90 (deg) | max (deg) | median coverage | median edges | median ms |")
+    print("| condition | read | median err (deg) | p90 (deg) | max (deg) | median coverage | median edges "
+          "| median ms |")
     print("|---|---|---|---|---|---|---|---|")
     for c in CONDITIONS:
         a = np.array(rows[c], dtype=float)

@@ -170,4 +170,4 @@ def _closed_form(obs, cc, stroke, pp, solver, focal_guess_px):
         return solve_pencil(cc, pp, focal_px=float(focal_guess_px))
     if len(errors) == 1:
         raise errors[0]
-    raise CalibrationError("; ".join(f"{n}: {e}" for n, e in zip(order, errors))) from errors[-1]
+    raise CalibrationError("; ".join(f"{n}: {e}" for n, e in zip(order, errors, strict=True))) from errors[-1]

@@ -314,7 +314,7 @@ def _edge_offsets(track, valid, contrast: float, shift: int, spec: TargetSpec) -
     coarse = (shift - 0.5) * STEP_DEG                     # pattern sampled half a column late
     w = cols(EDGE_WINDOW_DEG)
     out = []
-    for phi, falling in zip(np.degrees(theta_e), to_ink):
+    for phi, falling in zip(np.degrees(theta_e), to_ink, strict=True):
         pred = (phi + coarse) / STEP_DEG                  # predicted column, unwrapped
         c0 = int(np.floor(pred))
         if not np.all(valid[np.arange(c0 - cols(0.75 * half), c0 + cols(0.75 * half) + 2) % n]):

@@ -31,8 +31,8 @@ is solved through the Schur complement over the per-frame blocks,
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -86,7 +86,7 @@ class _FrameEdges:
     groups: tuple  # ((slice, ring_radius_mm, side), ...)
 
     @classmethod
-    def from_observation(cls, obs: TargetObservation, max_per_edge: int) -> "_FrameEdges":
+    def from_observation(cls, obs: TargetObservation, max_per_edge: int) -> _FrameEdges:
         uvs, groups, n = [], [], 0
         for e in obs.edges:
             uv = e.uv_px
@@ -101,7 +101,7 @@ class _FrameEdges:
             raise CalibrationError("no edge points")
         return cls(np.concatenate(uvs), tuple(groups))
 
-    def select(self, keep: np.ndarray) -> "_FrameEdges":
+    def select(self, keep: np.ndarray) -> _FrameEdges:
         uvs, groups, n = [], [], 0
         for sl, r, side in self.groups:
             uv = self.uv_px[sl][keep[sl]]
@@ -139,7 +139,7 @@ class _State:
 
     def poses(self) -> list[np.ndarray]:
         if self.R is not None:
-            return [make_T(R, t) for R, t in zip(self.R, self.t)]
+            return [make_T(R, t) for R, t in zip(self.R, self.t, strict=True)]
         Ts = []
         for th in self.theta:
             R = self.R_cam_axis @ rot_y(th)
@@ -177,7 +177,7 @@ class _Problem:
         self.n_params = n_g + int(self.n_local.sum())
         self.n_edge = np.array([len(f.uv_px) for f in frames])
         self.row_start = np.concatenate([[0], np.cumsum(self.n_edge)]).astype(int)
-        self.has_mark = np.array([m is not None and w > 0 for m, w in zip(self.mark_R, self.mark_w)])
+        self.has_mark = np.array([m is not None and w > 0 for m, w in zip(self.mark_R, self.mark_w, strict=True)])
         self.n_rows = int(self.row_start[-1] + self.has_mark.sum())
         self.mark_row = np.full(len(frames), -1)  # each frame's mark row, -1 where it has none
         self.mark_row[self.has_mark] = self.row_start[-1] + np.arange(self.has_mark.sum())
@@ -272,7 +272,7 @@ class _Problem:
         out[n_e:] = self.mark_w[mk] * np.arctan2(M[:, 0, 2] - M[:, 2, 0], M[:, 0, 0] + M[:, 2, 2])
         return out
 
-    def jacobian(self, x: np.ndarray) -> "_BlockJacobian":
+    def jacobian(self, x: np.ndarray) -> _BlockJacobian:
         """Forward differences, block by block.
 
         A frame's rows depend on the global parameters and its own only, so
@@ -348,7 +348,7 @@ class _Normal:
         return np.diagonal(self.U).copy(), np.diagonal(self.V, axis1=1, axis2=2).copy()
 
 
-def _normal_equations(problem: "_Problem", J: _BlockJacobian, w: np.ndarray, r: np.ndarray) -> _Normal:
+def _normal_equations(problem: _Problem, J: _BlockJacobian, w: np.ndarray, r: np.ndarray) -> _Normal:
     """``(Jw)^T Jw`` and ``(Jw)^T (w r)`` in blocks, for row weights ``w`` (n_rows,) and residuals ``r``.
 
     Per-frame products of a few hundred rows by a few columns (``einsum``

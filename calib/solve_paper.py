@@ -166,7 +166,9 @@ def solve_paper(
             continue
         M1, M2, M3 = eq23_conics(C1, centre, e.radius_mm(stroke_mm))
         x = np.column_stack([(e.uv_px - np.asarray(principal_point_px)) / scale_px, np.ones(len(e.uv_px))])
-        q = lambda M: np.einsum("ij,jk,ik->i", x, M, x)  # noqa: E731
+        def q(M, x=x):
+            return np.einsum("ij,jk,ik->i", x, M, x)
+
         rows.append(np.column_stack([q(M1), q(M2)]))
         rhs.append(-q(M3))
     W, b = np.vstack(rows), np.concatenate(rhs)

@@ -71,7 +71,7 @@ class Intrinsics:
         height: int,
         principal_point_px: tuple[float, float] | None = None,
         dist=(),
-    ) -> "Intrinsics":
+    ) -> Intrinsics:
         """Square pixels, zero skew; principal point at the image centre unless given."""
         cx, cy = principal_point_px if principal_point_px is not None else image_centre(width, height)
         K = np.array([[focal_px, 0.0, cx], [0.0, focal_px, cy], [0.0, 0.0, 1.0]])

@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import math
 import sys
-from typing import Callable
+from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -384,7 +384,7 @@ def _touching(vals, region, origin, voxel_mm) -> tuple[int, int]:
     return side, top
 
 
-def _grid(views: "_Views", region: _Region, resolution: int) -> tuple[tuple, np.ndarray]:
+def _grid(views: _Views, region: _Region, resolution: int) -> tuple[tuple, np.ndarray]:
     """The fine grid around what the coarse carve keeps: ``(lo, hi, voxel_mm, levels)`` and its ``dims``."""
     levels = max(0, int(round(math.log2(int(resolution) / _COARSE))))
     lo, hi = _tight_box(views, region)

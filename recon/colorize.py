@@ -25,8 +25,8 @@ the table) take the mean colour of coloured neighbours, ring by ring.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable, Sequence
 from dataclasses import replace
-from typing import Callable, Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -152,7 +152,7 @@ def _check_views(images_rgb, T_cam_table, masks):
         masks = [np.asarray(m) for m in masks]
         if len(masks) != len(images):
             raise ValueError(f"masks: expected {len(images)}, got {len(masks)}")
-        for k, (m, im) in enumerate(zip(masks, images)):
+        for k, (m, im) in enumerate(zip(masks, images, strict=True)):
             if m.shape != im.shape[:2]:
                 raise ValueError(f"masks[{k}]: expected {im.shape[:2]}, got {m.shape}")
     return images, poses, masks

@@ -26,8 +26,8 @@ from __future__ import annotations
 import json
 import os
 import struct
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import trimesh
@@ -288,7 +288,7 @@ def _colmap_points(points_table, colors_rgb) -> list[str]:
              f"# Number of points: {len(P)}, mean track length: 0"]
     P_m = P / MM_PER_M
     lines += [f"{i} {p[0]:.9g} {p[1]:.9g} {p[2]:.9g} {c[0]} {c[1]} {c[2]} 0"
-              for i, (p, c) in enumerate(zip(P_m, C), start=1)]
+              for i, (p, c) in enumerate(zip(P_m, C, strict=True), start=1)]
     return lines
 
 

@@ -197,7 +197,7 @@ def fuse_depths(depths: Sequence[DepthMap], images_rgb: Sequence[np.ndarray], K:
         raise ValueError(f"{len(depths)} depth maps, {len(images_rgb)} images, {len(Ts)} poses")
     if o.min_views < 1 or o.stride < 1:
         raise ValueError("min_views and stride must be >= 1")
-    samples = [view_samples(d, K, T, o.stride, o.min_confidence) for d, T in zip(depths, Ts)]
+    samples = [view_samples(d, K, T, o.stride, o.min_confidence) for d, T in zip(depths, Ts, strict=True)]
     check = select_neighbours(Ts, o.check_neighbours, min_angle_deg=0.0)
     parts = []
     for r in range(len(Ts)):

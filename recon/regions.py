@@ -141,7 +141,7 @@ def _judge(labels, n, hull, meshes_vf, depths, masks, K, Ts, o: RegionOptions):
     Ks = np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(K, float)
     origin, vox = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
     e_h, e_f, cnt, n_through = (np.zeros(n + 1) for _ in range(4))
-    for dm, T, m in zip(depths, Ts, masks if masks is not None else [None] * len(Ts)):
+    for dm, T, m in zip(depths, Ts, masks if masks is not None else [None] * len(Ts), strict=True):
         d = np.where(dm.confidence >= o.min_confidence, dm.depth_mm, 0.0)[::stride, ::stride]
         size = (d.shape[1], d.shape[0])
         r_h = render_depth(*hull_vf, Ks, T, size)

@@ -98,7 +98,7 @@ def fill_gaps(status: tuple[str, ...], azimuths_deg: np.ndarray, max_gap_deg: fl
         kept = [dropped[0]]
         out[dropped[0]] = _keep(out[dropped[0]], 360.0)
     starts, gaps = _circular_gaps(az[kept])
-    for start, gap in zip(starts, gaps):
+    for start, gap in zip(starts, gaps, strict=True):
         if gap <= max_gap_deg:
             continue
         inside = sorted(((az[j] - start) % 360.0, j) for j in dropped if 0 < (az[j] - start) % 360.0 < gap)

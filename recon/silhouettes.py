@@ -66,9 +66,9 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -77,8 +77,19 @@ from calib.camera import as_K, as_poses, plane_homography, project_points
 from calib.target import TargetSpec
 
 from .silhouette_checks import camera_azimuths_deg, fill_gaps, frame_status
-from .silhouette_doubt import (MAJOR_SHARE, Evidence, Plate, colour_dist, colour_set, doubtful_pixels, in_set,
-                               plate_envelope, range_dist, shadow_dist, texture_match)
+from .silhouette_doubt import (
+    MAJOR_SHARE,
+    Evidence,
+    Plate,
+    colour_dist,
+    colour_set,
+    doubtful_pixels,
+    in_set,
+    plate_envelope,
+    range_dist,
+    shadow_dist,
+    texture_match,
+)
 
 __all__ = ["SilhouetteResult", "estimate_silhouettes", "cylinder_region", "rectify_to_table"]
 
@@ -283,7 +294,8 @@ class _Plates:
         verified = ~inside | in_set(room, room_colours)
         self.room_verified = Plate(room, lo, hi, self.room.trust & verified, self.room.strong & verified)
         self.plane_radius = radius_mm + _PLATE_BORDER_MM
-        rect = np.stack([rectify_to_table(im, K, t, self.plane_radius, _PLANE_PX_PER_MM) for im, t in zip(images, T)])
+        rect = np.stack([rectify_to_table(im, K, t, self.plane_radius, _PLANE_PX_PER_MM)
+                         for im, t in zip(images, T, strict=True)])
         ones = np.ones(images.shape[1:3], np.uint8)
         seen = np.stack([rectify_to_table(ones, K, t, self.plane_radius, _PLANE_PX_PER_MM) > 0 for t in T])
         self.table, self.table_lo, self.table_hi, self.table_trust = _table_plate(rect, seen, T, tau,
@@ -328,7 +340,9 @@ def _initial_labels(img, region, room: Plate, table: Plate, tau, room_colours,
     explain itself away there. The room plate decides elsewhere; its
     explanations are only hard where it is background in nearly every frame.
     """
-    r_range, t_range, r_shadow, t_shadow, r_mid, t_mid = dist if dist is not None else _plate_distances(img, room, table)
+    if dist is None:
+        dist = _plate_distances(img, room, table)
+    r_range, t_range, r_shadow, t_shadow, r_mid, t_mid = dist
     d_room = np.where(room.trust & ~table.trust, r_range, np.inf)
     d_tab = np.where(table.trust, t_range, np.inf)
     d = np.minimum(d_room, d_tab)
@@ -451,7 +465,8 @@ def _clean(mask: np.ndarray, base: np.ndarray, explained: np.ndarray) -> np.ndar
     if nh <= 1:
         return out
     area = hs[:, cv2.CC_STAT_AREA]
-    explained_share = np.bincount(hl.ravel(), weights=explained.ravel().astype(float), minlength=nh) / np.maximum(area, 1)
+    explained_n = np.bincount(hl.ravel(), weights=explained.ravel().astype(float), minlength=nh)
+    explained_share = explained_n / np.maximum(area, 1)
     small = area < max(16, 0.002 * out.sum())
     H, W = out.shape
     for h in range(1, nh):
@@ -629,7 +644,7 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
         masks2, outs2, quality2, _ = run(True, None)
         better = quality2 > quality
         masks[better] = masks2[better]
-        outs = [o2 if b else o for o, o2, b in zip(outs, outs2, better)]
+        outs = [o2 if b else o for o, o2, b in zip(outs, outs2, better, strict=True)]
         border = np.array([f[0].sum() + f[-1].sum() + f[:, 0].sum() + f[:, -1].sum() for f in masks])
         quality, status = frame_status(masks.reshape(V, -1).sum(axis=1), np.array([o.support for o in outs]),
                                        border, region_px, (W, H))

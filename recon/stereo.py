@@ -141,7 +141,7 @@ def hull_depth_range(hull_or_mesh, K: np.ndarray, T_cam_table: Sequence[np.ndarr
     Ks = _scaled_K(K, scale)
     near = np.zeros((len(Ts), H, W), np.float32)
     far = np.zeros_like(near)
-    corners = np.array(np.meshgrid(*zip(verts.min(0), verts.max(0)))).reshape(3, -1).T
+    corners = np.array(np.meshgrid(*zip(verts.min(0), verts.max(0), strict=True))).reshape(3, -1).T
     v_sub = verts[:: max(1, len(verts) // 20000)]
     for i, T in enumerate(Ts):
         n_i = np.zeros((Hs, Ws), np.float32)

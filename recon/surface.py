@@ -4,7 +4,8 @@ Truncated signed distance fusion on the hull's own voxel grid, inside
 positive like :class:`~recon.types.VoxelHull`. Each view ``i`` renders the
 fused points that face it into a z-buffer ``Z_i`` (on every ``stride``-th
 pixel), kept where the view's own stereo depth agrees (a z-buffer can show
-points through pinholes between splats; a depth map cannot); a voxel centre at camera depth ``z`` projecting to ``x`` gets
+points through pinholes between splats; a depth map cannot); a voxel centre
+at camera depth ``z`` projecting to ``x`` gets
 
     phi_i = clip(z - Z_i(x), -tau, tau)        if z - Z_i(x) < tau,
 
@@ -236,7 +237,7 @@ def _integrate(pts, zbufs, K_sub, Ts, tau, delta, progress):
     cnt = np.zeros(len(pts), np.float32)
     n_free = np.zeros(len(pts), np.int16)
     n_down = np.zeros(len(pts), np.int16)
-    for i, (zb, T) in enumerate(zip(zbufs, Ts)):
+    for i, (zb, T) in enumerate(zip(zbufs, Ts, strict=True)):
         P = (K_sub @ T[:3, :]).astype(np.float32)
         uvw = pts @ P[:, :3].T
         uvw += P[:, 3]
@@ -346,7 +347,7 @@ def fused_field(points: FusedPoints, hull: VoxelHull, K: np.ndarray, T_cam_table
     if depths is not None:
         if len(depths) != len(Ts):
             raise ValueError(f"{len(depths)} depth maps but {len(Ts)} poses")
-        zbufs = [_agreeing(zb, dm, stride, o.min_confidence, o.agree_mm) for zb, dm in zip(zbufs, depths)]
+        zbufs = [_agreeing(zb, dm, stride, o.min_confidence, o.agree_mm) for zb, dm in zip(zbufs, depths, strict=True)]
     K_sub = np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(K, float)
     step = int(o.tsdf_step) if o.tsdf_step is not None else max(1, int(round(1.0 / float(hull.voxel_mm))))
     tau = float(o.trunc_mm) if o.trunc_mm is not None else max(2.0 * step * float(hull.voxel_mm), 1.5)
@@ -409,7 +410,7 @@ def compare_to_hull(hull_mesh_vf: tuple[np.ndarray, np.ndarray], fused_mesh_vf: 
         raise ValueError(f"{len(depths)} depth maps but {len(Ts)} poses")
     Ks = np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(K, float)
     e_h, e_f = [], []
-    for dm, T in zip(depths, Ts):
+    for dm, T in zip(depths, Ts, strict=True):
         d = np.where(dm.confidence >= min_confidence, dm.depth_mm, 0.0)[::stride, ::stride]
         size = (d.shape[1], d.shape[0])
         r_h = render_depth(*hull_mesh_vf, Ks, T, size)

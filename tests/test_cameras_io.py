@@ -34,7 +34,7 @@ def test_round_trip(tmp_path):
     np.testing.assert_allclose(back.intrinsics.dist, seq.intrinsics.dist)
     assert [f.image for f in back.ok_frames()] == [f"frame_{k:03d}.jpg" for k in range(3)]
     assert back.frames[3].status == "inner ring not found"
-    for a, b in zip(back.frames, seq.frames):
+    for a, b in zip(back.frames, seq.frames, strict=True):
         np.testing.assert_allclose(a.T_cam_table, b.T_cam_table)
     assert back.meta["object"] == "vase"
 

@@ -156,7 +156,7 @@ def test_nerfstudio_round_trip_and_projection(tmp_path):
                              ply_file_path="model.ply")
     doc = json.loads(path.read_text())
     assert doc["w"] == 1280 and doc["h"] == 960 and doc["k1"] == 0.1 and doc["ply_file_path"] == "model.ply"
-    for (name, T), fr in zip(frames, doc["frames"]):
+    for (name, T), fr in zip(frames, doc["frames"], strict=True):
         assert fr["file_path"] == name
         c2w = np.array(fr["transform_matrix"])
         # back to T_cam_table: undo OpenGL axes, metres -> mm, invert

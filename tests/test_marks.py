@@ -192,7 +192,8 @@ def test_raster_draws_the_marks_with_table_x_along_columns_and_z_along_rows():
     X, Z = (j - c) / px, (i - c) / px
     ink = ink_at(SPEC, X, Z)
     # pixels whose whole neighbourhood agrees must be pure ink / pure paper
-    solid = (ink == np.roll(ink, 1, 0)) & (ink == np.roll(ink, -1, 0)) & (ink == np.roll(ink, 1, 1)) & (ink == np.roll(ink, -1, 1))
+    solid = ((ink == np.roll(ink, 1, 0)) & (ink == np.roll(ink, -1, 0))
+             & (ink == np.roll(ink, 1, 1)) & (ink == np.roll(ink, -1, 1)))
     assert np.all(img[solid & ink] == 0) and np.all(img[solid & ~ink] == 255)
     assert np.any(solid & ink & (np.hypot(X, Z) > SPEC.mark_r0_mm))
 

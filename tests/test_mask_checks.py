@@ -24,7 +24,8 @@ def test_plausible_masks_pass():
 
 
 def test_inverted_masks_are_refused_naming_folder_and_frames():
-    with pytest.raises(UserError, match=r"--masks masks: 8 of 8 masks .*\(frame_000.jpg, .*\): they look inverted") as e:
+    inverted = r"--masks masks: 8 of 8 masks .*\(frame_000.jpg, .*\): they look inverted"
+    with pytest.raises(UserError, match=inverted) as e:
         check_masks(~_discs(), NAMES, DIR)
     assert "white (> 127) on black" in str(e.value)
 

@@ -1,9 +1,9 @@
 """The Rerun recorder: what a person opening the file will find."""
 
 import numpy as np
+from rrd_util import pinhole_K, rrd_column, rrd_rows
 
 from calib.camera import make_T, rotation_from_normal
-from rrd_util import pinhole_K, rrd_column, rrd_rows
 from turntable.recording import Recorder
 
 

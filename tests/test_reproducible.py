@@ -41,7 +41,7 @@ def _reconstruct(scene, out) -> None:
 
 def test_two_clean_runs_give_identical_files(scene, tmp_path, monkeypatch):
     for name, cores in (("a", 4), ("b", 1)):  # the silhouette stage runs one thread per core
-        monkeypatch.setattr(os, "cpu_count", lambda: cores)
+        monkeypatch.setattr(os, "cpu_count", lambda cores=cores: cores)
         _reconstruct(scene, tmp_path / name)
     monkeypatch.undo()
     with np.load(tmp_path / "a" / ".turntable" / "silhouettes.npz") as sa, \

@@ -115,7 +115,7 @@ def test_silhouettes_match_ground_truth(sequence):
     imgs, gt, T = sequence
     res = estimate_silhouettes(imgs, K, T, SPEC)
     assert isinstance(res, SilhouetteResult) and res.masks.shape == gt.shape and res.masks.dtype == bool
-    ious = [_iou(m, g) for m, g in zip(res.masks, gt)]
+    ious = [_iou(m, g) for m, g in zip(res.masks, gt, strict=True)]
     # measured: median 0.99, mean 0.96; two frames lose part of the box top where the box covers
     # the same far-floor pixels in most frames (0.90, 0.73): the room plate's weak case
     assert np.median(ious) >= 0.97 and np.mean(ious) >= 0.94, ious
@@ -209,7 +209,7 @@ def test_real_studio_photos_outline_without_plates_is_ok():
     gt, T = np.stack([f[1] for f in frames]), np.stack([f[2] for f in frames])
     res = estimate_silhouettes(imgs, K, T, radius_mm=60.0)  # no target: the volume from the caller
     assert all(s == "ok" for s in res.status), res.status
-    assert np.mean([_iou(m, g) for m, g in zip(res.masks, gt)]) >= 0.97
+    assert np.mean([_iou(m, g) for m, g in zip(res.masks, gt, strict=True)]) >= 0.97
     assert _touching_views(res.masks, T, 60.0) == set()
     small = estimate_silhouettes(imgs, K, T, radius_mm=20.0)  # narrower than the box: it sticks out
     assert _touching_views(small.masks, T, 20.0) == set(range(12))
@@ -252,7 +252,7 @@ def test_white_box_on_white_paper_is_never_eaten():
     kept = [i for i, s in enumerate(res.status) if not s.startswith("rejected")]
     assert len(kept) >= 8, res.status
     keep = res.masks | res.unknown
-    covered = [(g & k).sum() / g.sum() for g, k in zip(gt[kept], keep[kept])]
+    covered = [(g & k).sum() / g.sum() for g, k in zip(gt[kept], keep[kept], strict=True)]
     assert min(covered) >= 0.99, covered  # measured: >= 0.994 (the mask alone: 0.15-0.77; the old rule: 0.48)
     ink = np.stack([cylinder_region(K, t, (W, H), SPEC.r_inner_mm + 1.5, 0.0)
                     & ~cylinder_region(K, t, (W, H), SPEC.r_inner_mm - 1.5, 0.0) for t in T])

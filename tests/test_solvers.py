@@ -45,7 +45,7 @@ def _observe(K, T, *, sides=(0,), stroke=0.0, radii=(R1, R2), labels=None, n=200
     """Edge points of the rings; ``labels`` overrides the ring radii written in them."""
     labels = radii if labels is None else labels
     edges = []
-    for R, label in zip(radii, labels):
+    for R, label in zip(radii, labels, strict=True):
         for side in sides:
             uv = project_points(K, T, circle_points_table(R + side * stroke / 2, n))
             if sigma:

@@ -90,11 +90,11 @@ def box_mesh(lo, hi):
 
 def hull_from_masks(masks, K, Ts, lo, hi, voxel_mm) -> VoxelHull:
     """Silhouette carving on a grid (test helper): +voxel inside all masks, -voxel outside."""
-    axes = [np.arange(a, b + 1e-9, voxel_mm) for a, b in zip(lo, hi)]
+    axes = [np.arange(a, b + 1e-9, voxel_mm) for a, b in zip(lo, hi, strict=True)]
     X, Y, Z = np.meshgrid(*axes, indexing="ij")
     pts = np.stack([X, Y, Z], -1).reshape(-1, 3)
     inside = np.ones(len(pts), bool)
-    for m, T in zip(masks, Ts):
+    for m, T in zip(masks, Ts, strict=True):
         pc = pts @ T[:3, :3].T + T[:3, 3]
         uv = pc @ K.T
         u = np.round(uv[:, 0] / uv[:, 2]).astype(int)

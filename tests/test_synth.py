@@ -87,7 +87,8 @@ def test_outer_ring_is_where_circle_conic_says(vase_scene):
         assert visible.mean() > 0.6
         ink = cv2.remap(grey.astype(np.float32), *uv.T[:, None, :].astype(np.float32), cv2.INTER_LINEAR).ravel()
         paper_in = cv2.remap(grey.astype(np.float32), *uv_in.T[:, None, :].astype(np.float32), cv2.INTER_LINEAR).ravel()
-        paper_out = cv2.remap(grey.astype(np.float32), *uv_out.T[:, None, :].astype(np.float32), cv2.INTER_LINEAR).ravel()
+        paper_out = cv2.remap(grey.astype(np.float32), *uv_out.T[:, None, :].astype(np.float32),
+                              cv2.INTER_LINEAR).ravel()
         contrast = np.minimum(paper_in, paper_out)[visible] - ink[visible]
         # the object's shadow darkens some paper; the stroke must still be darker there
         assert np.median(ink[visible]) < 60, f"r={r_mm}: ring not dark along its projected centre line"
@@ -144,7 +145,7 @@ def test_sequence_files_and_cameras_round_trip(tmp_path):
     np.testing.assert_allclose(seq.intrinsics.principal_point_px, [50.0, 33.0])
     np.testing.assert_allclose(seq.intrinsics.focal_px, 110.0)
     T0 = seq.frames[0].T_cam_table
-    for f, a in zip(seq.frames, scene["angles_deg"]):
+    for f, a in zip(seq.frames, scene["angles_deg"], strict=True):
         assert f.ok and np.isnan(f.rms_px) and f.angle_deg == pytest.approx(a)
         np.testing.assert_allclose(f.T_cam_table, T0 @ rot_y(np.radians(f.angle_deg)), atol=1e-9)
         img = cv2.imread(str(out / f.image))

@@ -45,7 +45,7 @@ class WorkingVolume:
     source: str
     view_radius_mm: float = 0.0
 
-    def grown(self, side: bool, top: bool) -> "WorkingVolume | None":
+    def grown(self, side: bool, top: bool) -> WorkingVolume | None:
         """The next larger volume in the directions that touch; None when none of them can grow."""
         r, h = self.radius_mm, self.height_mm
         if side and r < self.max_radius_mm:

@@ -10,6 +10,6 @@ from .render import pixel_rays_cam, render_view, undistort_normalized
 from .scene import BACKDROPS, SynthScene, build_scene
 from .sequence import SynthOptions, camera_poses, make_sequence
 
-__all__ = ["OBJECT_NAMES", "ProceduralTexture", "UniformAlbedo", "with_uniform_albedo", "make_object", "load_object", "SynthScene", "build_scene",
-           "BACKDROPS", "render_view", "pixel_rays_cam", "undistort_normalized", "SynthOptions", "make_sequence",
-           "camera_poses"]
+__all__ = ["OBJECT_NAMES", "ProceduralTexture", "UniformAlbedo", "with_uniform_albedo", "make_object", "load_object",
+           "SynthScene", "build_scene", "BACKDROPS", "render_view", "pixel_rays_cam", "undistort_normalized",
+           "SynthOptions", "make_sequence", "camera_poses"]

@@ -83,7 +83,7 @@ class ProceduralTexture:
     stripe_mm: float
 
     @classmethod
-    def random(cls, rng: np.random.Generator) -> "ProceduralTexture":
+    def random(cls, rng: np.random.Generator) -> ProceduralTexture:
         hue = rng.random()
         return cls(perm=rng.permutation(256).astype(np.int64), values=rng.random(256),
                    base_a=_hsv_to_rgb(hue, 0.55 + 0.3 * rng.random(), 0.8),

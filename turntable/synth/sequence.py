@@ -263,7 +263,7 @@ def make_sequence(out_dir: str | os.PathLike, options: SynthOptions, overwrite: 
     height = float(np.asarray(mesh.vertices)[:, 1].max())
     angles, T_cam_tables, T_world_tables = camera_poses(options, height, np.random.default_rng(seeds[2]))
     # the round wall stands well behind every camera (cameras in world coordinates)
-    far = max(np.hypot(*(T_wt @ invert_T(T))[[0, 2], 3]) for T, T_wt in zip(T_cam_tables, T_world_tables))
+    far = max(np.hypot(*(T_wt @ invert_T(T))[[0, 2], 3]) for T, T_wt in zip(T_cam_tables, T_world_tables, strict=True))
     room_mm = max(700.0, 1.3 * far + 100.0)
     light = _light_direction(np.random.default_rng(seeds[4]))
     scene = build_scene(mesh, spec, options.backdrop, rng=np.random.default_rng(seeds[1]), target_px_per_mm=ppm,
