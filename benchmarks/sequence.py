@@ -36,8 +36,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from calib.camera import camera_centre_table  # noqa: E402
 from calib.sequence import _yaw_of  # noqa: E402
 from turntable.cameras_io import read_cameras  # noqa: E402
-from turntable.cmd_sequence import calibrate_folder  # noqa: E402
 from turntable.images import list_images  # noqa: E402
+from turntable.sequence_stage import calibrate_folder  # noqa: E402
 
 
 def scenes(frames: int, quick: bool):
@@ -58,7 +58,7 @@ def scenes(frames: int, quick: bool):
 
 
 def metrics(seq, gt) -> dict:
-    ok = [(f, g) for f, g in zip(seq.frames, gt.frames) if f.ok]
+    ok = [(f, g) for f, g in zip(seq.frames, gt.frames, strict=True) if f.ok]
     cen = np.array([np.linalg.norm(camera_centre_table(f.T_cam_table) - camera_centre_table(g.T_cam_table))
                     for f, g in ok])
     yaw = np.array([abs(math.degrees(_yaw_of(f.T_cam_table[:3, :3].T @ g.T_cam_table[:3, :3]))) for f, g in ok])

@@ -74,7 +74,9 @@ def run_once(images: Path, n: int, tree: Path, timeout_s: float) -> dict:
                 time.sleep(0.1)
         wall = time.perf_counter() - t0
         text = log.read_text()
-        per_frame = [float(m.group(1)) for m in re.finditer(rf"{2 * n}/{2 * n} \(([\d.]+) s\)", text)]
+        # the per-frame stage's end: "frames done in X s" (older code: the progress line "2N/2N (X s)")
+        per_frame = [float(m.group(1)) for m in re.finditer(rf"(?:frames done in\s+|{2 * n}/{2 * n} \()([\d.]+) s",
+                                                             text)]
         focal = json.loads(out.read_text())["intrinsics"]["K"][0][0] if out.exists() else None
         return {"frames": n, "wall_s": wall, "per_frame_stage_s": per_frame[-1] if per_frame else float("nan"),
                 "peak_mb": usage.ru_maxrss / 1024, "focal_px": focal, "timed_out": timed_out}

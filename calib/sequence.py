@@ -53,16 +53,38 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
-from typing import Callable, Sequence
 
 import numpy as np
 
 from .camera import camera_centre_table, make_T
 from .distortion import undistort_px
+from .sequence_model import (
+    FitReport,
+    FitStep,
+    _exp_so3,  # noqa: F401  (used by tests)
+    _Fit,
+    _fit,
+    _FrameEdges,
+    _Problem,
+    _project_rotation,
+    _solve,
+    _State,
+    _wrap,
+    _yaw_of,
+    rot_y,
+)
 from .target import TargetSpec
-from .types import (CalibrationError, EdgePoints, FramePose, Intrinsics, SequenceCalibration,
-                    TargetObservation, image_centre)
+from .types import (
+    CalibrationError,
+    EdgePoints,
+    FramePose,
+    Intrinsics,
+    SequenceCalibration,
+    TargetObservation,
+    image_centre,
+)
 
 log = logging.getLogger(__name__)
 
@@ -109,10 +131,6 @@ _FRAME_ERRORS = (CalibrationError, ValueError, np.linalg.LinAlgError)
 AngleReader = Callable[[int, np.ndarray, np.ndarray, "np.ndarray | None"], tuple[np.ndarray, float]]
 
 
-from .sequence_model import _exp_so3  # noqa: F401  (used by tests)
-from .sequence_model import (FitReport, FitStep, _Fit, _fit, _FrameEdges, _Problem, _project_rotation, _solve, _State,
-                             _wrap, _yaw_of, rot_y)
-
 
 # --------------------------------------------------------------------------- initialisation
 def _circle_fit(Ts: list[np.ndarray], theta) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -126,7 +144,7 @@ def _circle_fit(Ts: list[np.ndarray], theta) -> tuple[np.ndarray, np.ndarray, np
     """
     A = np.zeros((3 * len(Ts), 5))
     b = np.zeros(3 * len(Ts))
-    for k, (T, th) in enumerate(zip(Ts, theta)):
+    for k, (T, th) in enumerate(zip(Ts, theta, strict=True)):
         A[3 * k:3 * k + 3, :3] = rot_y(th).T
         A[3 * k, 3] = -1.0
         A[3 * k + 2, 4] = -1.0
@@ -151,7 +169,7 @@ def _init_turntable(Ts: list[np.ndarray], theta: np.ndarray, yaw_known: bool) ->
     linear model ``c_k = RotY(theta_k)^T C - d`` (C: camera centre in the axis frame).
     """
     if yaw_known:
-        M = sum(T[:3, :3] @ rot_y(th).T for T, th in zip(Ts, theta))
+        M = sum(T[:3, :3] @ rot_y(th).T for T, th in zip(Ts, theta, strict=True))
         R_ca = _project_rotation(M)
         sol, per_frame, _ = _circle_fit(Ts, theta)
         C, d = sol[:3], sol[3:]
@@ -455,6 +473,7 @@ def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, i
     free_stroke = any(singles[k].edges.has_stroke for k in ok)
     stroke0 = float(np.median([singles[k].stroke_mm for k in ok])) if free_stroke else 0.0
     state0 = _State(K=K0, dist=np.zeros(5), stroke=stroke0)
+    step_deg, step_note = _step_or_marks(singles, ok, names, step_deg)
     chosen, why, fit, used, checks, centre_rms, rms_pooled = _fit_model(singles, ok, names, step_deg, mode, state0,
                                                                         base, free_stroke, report)
     if mode == "auto" and chosen == "handheld":
@@ -494,8 +513,38 @@ def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, i
             fit = _reread_marks(fit, used, reader, report)
         else:
             _reread_yaw(fit, used, singles, reader)
-    return _result(fit, chosen, why, singles, reasons, ok, used, names, size, intr, notes, checks,
-                   rms_pooled, centre_rms)
+    if step_note:
+        why = f"{step_note}; {why}"
+    seq = _result(fit, chosen, why, singles, reasons, ok, used, names, size, intr, notes, checks,
+                  rms_pooled, centre_rms)
+    return replace(seq, meta={**seq.meta, "warnings": [step_note]}) if step_note else seq
+
+
+def _step_or_marks(singles, ok, names, step_deg) -> tuple[float | None, str]:
+    """``(step_deg, "")``, or ``(None, warning)`` when most frames' angle marks contradict the step.
+
+    A wrong ``--step-deg`` (10 for a 30-degree table) fixes every frame at the
+    wrong angle: the turntable model cannot fit, and the sequence would fall to
+    hand-held mode with a reason that does not name the step. Where the marks
+    were read on at least 3 frames and more than half disagree with the step by
+    more than ``ANGLE_CHECK_DEG``, the marks are used instead, and the warning
+    says so (with the step the marks read).
+    """
+    if step_deg is None:
+        return None, ""
+    marked = [k for k in ok if singles[k].yaw_ok]
+    if len(marked) < 3:
+        return step_deg, ""
+    _, _, checks = _initial_angles(singles, marked, names, step_deg)
+    if len(checks) <= len(marked) / 2:
+        return step_deg, ""
+    ref = singles[marked[0]].T[:3, :3]
+    rel = [_yaw_of(ref.T @ singles[k].T[:3, :3]) for k in marked]
+    per_frame = [math.degrees(float(_wrap(b - a))) * TURN_SIGN / (kb - ka)
+                 for a, b, ka, kb in zip(rel[:-1], rel[1:], marked[:-1], marked[1:], strict=True)]
+    read = float(np.median(per_frame))
+    return None, (f"--step-deg {step_deg:g} contradicts the angle marks on {len(checks)} of {len(marked)} frames "
+                  f"(they read {read:.1f}° per frame): the marks were used instead of the step")
 
 
 def _retry_turntable(singles, reasons, ok, names, step_deg, state0, base, free_stroke, first, report=None):
@@ -514,13 +563,13 @@ def _retry_turntable(singles, reasons, ok, names, step_deg, state0, base, free_s
         return first
     theta_all, _, _ = _initial_angles(singles, angled, names, step_deg)
     _, per_frame, rows = _circle_fit([singles[k].T for k in angled], [theta_all[k] for k in angled])
-    odd = [k for k, r in zip(angled, rows) if not r]
+    odd = [k for k, r in zip(angled, rows, strict=True) if not r]
     chosen, why = first[0], first[1]
     if odd and len(odd) <= max(1, len(angled) // 10):
         rest = [k for k in ok if k not in odd]
         trial = _fit_model(singles, rest, names, step_deg, "auto", state0, base, free_stroke, report)
         if trial[0] == "turntable":
-            for k, off in zip(angled, per_frame):
+            for k, off in zip(angled, per_frame, strict=True):
                 if k in odd:
                     singles[k] = None
                     reasons[k] = (f"does not fit the turntable: its camera is {off:.0f} mm off the circle the "

@@ -101,7 +101,7 @@ def run_synthetic(monkeypatch, rng, K, dist, Ts, n_per_edge=400, **kw):
 
 def centre_errors_mm(seq, Ts):
     return np.array([np.linalg.norm(camera_centre_table(f.T_cam_table) - camera_centre_table(T))
-                     for f, T in zip(seq.frames, Ts) if f.ok])
+                     for f, T in zip(seq.frames, Ts, strict=True) if f.ok])
 
 
 def angle_errors_deg(seq, theta_true):
@@ -171,6 +171,23 @@ def test_turntable_step_fixes_angles_and_flags_disagreeing_marks(monkeypatch):
     assert [f.angle_deg for f in seq.frames][:3] == pytest.approx([0.0, 30.0, 60.0])
     flagged = [c["image"] for c in seq.meta.get("angle_checks", [])]
     assert flagged == ["frame_005"]
+
+
+def test_a_step_the_marks_contradict_is_not_used_and_the_warning_says_so(monkeypatch):
+    """--step-deg 10 on a 30-degree table: the marks' angles are used (turntable mode kept), and it is said."""
+    rng = np.random.default_rng(2)
+    K, theta, Ts = turntable_truth(rng, n=12, step=30.0)
+    obs = [synth_observation(K, np.zeros(5), T, rng, n_per_edge=200) for T in Ts]
+    single, lookup = perturbed_single_view(Ts, K, rng)
+    lookup.extend(range(len(obs)))
+    monkeypatch.setattr(cs, "_single_view", single)
+    seq = cs.calibrate_sequence(obs, None, SPEC, step_deg=10.0, angle_reader=fake_reader(Ts, rng))
+    assert seq.mode == "turntable"
+    [warning] = seq.meta["warnings"]
+    assert "--step-deg 10 contradicts the angle marks" in warning and "30.0° per frame" in warning
+    assert warning in seq.meta["mode_reason"]
+    assert [f.angle_deg for f in seq.frames][:3] == pytest.approx([0.0, 30.0, 60.0], abs=0.2)  # the marks' 30
+    assert "angle_checks" not in seq.meta  # the step was dropped, so nothing is checked against it
 
 
 # --------------------------------------------------------------------------- handheld

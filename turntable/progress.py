@@ -32,11 +32,17 @@ class Progress:
     @contextmanager
     def stage(self, name: str):
         t0 = time.perf_counter()
-        last = [0.0]
+        last = [0.0, 0]  # time of the last live update; last quarter logged
 
         def tick(done: int, total: int) -> None:
             now = time.perf_counter()
-            if not self.tty or (now - last[0] < 0.1 and done < total):
+            if not self.tty:  # a log: a line at each quarter of a long count, nothing else
+                quarter = 4 * done // max(total, 1)
+                if total >= 8 and 0 < quarter < 4 and quarter != last[1]:
+                    last[1] = quarter
+                    self._write(f"  {name} {done}/{total} ({now - t0:.1f} s)\n")
+                return
+            if now - last[0] < 0.1 and done < total:
                 return
             last[0] = now
             width = 30
@@ -50,7 +56,9 @@ class Progress:
         finally:
             dt = time.perf_counter() - t0
             self.times_s[name] = self.times_s.get(name, 0.0) + dt
-            self._write(f"\r  {name:<14} done in {dt:6.1f} s{' ' * 30}\n")
+            # off a terminal no carriage return and no padding: one clean line per stage in a log
+            self._write(f"\r  {name:<14} done in {dt:6.1f} s{' ' * 30}\n" if self.tty else
+                        f"  {name} done in {dt:.1f} s\n")
 
     def status(self, name: str, text: str, done: bool = False) -> None:
         """A stage that reports what it is at (an iteration, a cost) rather than a count.

@@ -8,8 +8,9 @@ Frames whose rings cannot be found are kept with their reason; the library
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -17,12 +18,13 @@ from calib.target import TargetSpec
 from calib.types import CalibrationError, Intrinsics, SequenceCalibration, TargetObservation
 
 from .errors import UserError
+from .images import read_image
 from .worksize import WorkSize
 
 log = logging.getLogger(__name__)
 
-__all__ = ["calibrate_frames", "calibrate_detected", "detect_all", "detect_and_reduce", "DetectedFrames",
-           "scaled_marks_reader"]
+__all__ = ["calibrate_folder", "calibrate_stream", "calibrate_frames", "calibrate_detected", "detect_all",
+           "detect_and_reduce", "DetectedFrames", "scaled_marks_reader"]
 
 
 def detect_all(frames: Sequence[tuple[str, np.ndarray | None, str]], spec: TargetSpec,
@@ -33,7 +35,7 @@ def detect_all(frames: Sequence[tuple[str, np.ndarray | None, str]], spec: Targe
 
     obs: list[TargetObservation | None] = []
     failures: list[str] = []
-    for k, (name, img, error) in enumerate(frames):
+    for k, (_name, img, error) in enumerate(frames):
         o, why = None, error or ""
         if img is not None and not error:
             try:
@@ -202,3 +204,63 @@ def scaled_marks_reader(images: Sequence[np.ndarray | None], spec: TargetSpec, S
         return base(k, S @ np.asarray(K, np.float64), T, dist_now)
 
     return read
+
+
+def calibrate_folder(paths, spec: TargetSpec, *, step_deg=None, intrinsics=None, mode="auto",
+                     principal_point_px=None, distortion="auto", progress=None,
+                     fit_progress=None) -> SequenceCalibration:
+    """Read ``paths`` (unreadable ones are reported as skipped frames) and calibrate them.
+
+    One photo at a time: its rings are found at full resolution, and only a
+    copy at the default work size (:func:`turntable.worksize.choose_work_size`;
+    photos up to 1.3 MP whole) is kept to read the angle marks from.
+    ``UserError`` when nothing can be calibrated or the photos differ in size;
+    see :func:`turntable.sequence_stage.calibrate_frames` for the rest.
+    """
+    def frames():
+        size = None
+        for p in map(Path, paths):
+            try:
+                img = read_image(p)
+            except UserError as exc:
+                yield p.name, None, str(exc).split(": ", 1)[-1]
+                continue
+            if size is not None and img.shape[:2] != size:
+                raise UserError(f"frames have different sizes: {p} is {img.shape[1]}x{img.shape[0]}, "
+                                f"the first is {size[1]}x{size[0]}")
+            size = img.shape[:2]
+            yield p.name, img, ""
+
+    if not paths:
+        raise UserError("no frames to calibrate")
+    return calibrate_stream(frames(), len(paths), spec, step_deg=step_deg, intrinsics=intrinsics, mode=mode,
+                            principal_point_px=principal_point_px, distortion=distortion, progress=progress,
+                            fit_progress=fit_progress)
+
+
+def calibrate_stream(frames, n: int, spec: TargetSpec, *, step_deg=None, intrinsics=None, mode="auto",
+                     principal_point_px=None, distortion="auto", progress=None,
+                     fit_progress=None) -> SequenceCalibration:
+    """Calibrate frames ``(name, BGR image or None, error)`` given one at a time (a generator that decodes
+    each when it is reached: a folder's photos, a video's frames), ``n`` of them (0: not known ahead).
+
+    Each frame's rings are found at full resolution and only a copy at the
+    default work size is kept, for the angle marks. ``progress(done, total)``
+    counts the frames twice (detection, then single-view calibration);
+    ``fit_progress`` is told each iteration of the joint fit after them.
+    """
+    from .worksize import choose_work_size
+
+    tick = (lambda done, total: progress(done, 2 * max(n, total))) if progress is not None else None
+    pp = intrinsics.principal_point_px if intrinsics is not None else principal_point_px
+    det = detect_and_reduce(frames, spec, lambda size, ring, name: choose_work_size(size, ring),
+                            principal_point_px=pp, progress=tick, total=n,
+                            expected_size=None if intrinsics is None else (intrinsics.width, intrinsics.height))
+    if not det.names:
+        raise UserError("no frames to calibrate")
+    m = len(det.names)
+    tick2 = (lambda done, total: progress(m + done, 2 * m)) if progress is not None else None
+    return calibrate_detected(det.observations, det.failures, det.names, det.images, spec,
+                              marks_map=None if det.work is None else det.work.S, step_deg=step_deg,
+                              intrinsics=intrinsics, mode=mode, principal_point_px=principal_point_px,
+                              distortion=distortion, progress=tick2, fit_progress=fit_progress)

@@ -22,7 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "calibrate": ("turntable.cli.calibrate", "focal length and table pose from single photos of the two-ring target"),
     "pattern": ("turntable.cli.pattern", "write the printable target (PDF, SVG or PNG)"),
     "synth": ("turntable.cli.synth", "render a synthetic turntable sequence with ground truth"),
-    "calibrate-sequence": ("turntable.cmd_sequence", "calibrate a whole turntable sequence into cameras.json"),
+    "calibrate-sequence": ("turntable.cli.sequence", "calibrate a whole turntable sequence into cameras.json"),
     "reconstruct": ("turntable.cli.reconstruct",
                     "photos of an object on the turntable -> coloured mesh + Rerun recording"),
     "view": ("turntable.cli.view", "open a Rerun recording written by reconstruct"),

@@ -99,6 +99,8 @@ def print_summary(res, stream=None) -> None:
         for line in (ex.get("note"), focal_warning(s["focal_px"], ex)):
             if line:
                 w(f"  warning         {line}\n")
+    for line in s.get("warnings", []):
+        w(f"  warning         {line}\n")
     if s.get("rms_px") is not None:
         w(f"  edge RMS        {s['rms_px']:.3f} px\n")
     ws = s.get("work_size")

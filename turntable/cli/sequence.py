@@ -12,20 +12,19 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
-import time
 from pathlib import Path
 
-from calib.target import TargetSpec
 from calib.types import SequenceCalibration
 
-from .cameras_io import write_cameras
-from .cmd_calibrate import add_target_arguments, target_from_args
-from .errors import UserError
-from .frames import VIDEO_SUFFIXES, iter_frames, select_indices
-from .images import exif_focal_report, focal_warning, list_images, read_image
-from .progress import Progress, fit_reporter
+from ..cameras_io import write_cameras
+from ..errors import UserError
+from ..frames import VIDEO_SUFFIXES, iter_frames, select_indices
+from ..images import exif_focal_report, focal_warning, list_images
+from ..progress import Progress, fit_reporter
+from ..sequence_stage import calibrate_folder, calibrate_stream
+from .args import add_target_arguments, target_from_args
 
-__all__ = ["add_arguments", "run", "calibrate_folder", "summary_table"]
+__all__ = ["add_arguments", "run", "summary_table"]
 
 
 def add_arguments(parser) -> None:
@@ -49,90 +48,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--out", required=True, metavar="cameras.json", help="output file")
 
 
-def _progress_printer(stream, label: str):
-    """``tick(done, total)``: a live line on a terminal, a line per quarter otherwise."""
-    t0 = time.perf_counter()
-    last = [0.0, -1]
-    tty = bool(getattr(stream, "isatty", lambda: False)())
-
-    def tick(done: int, total: int) -> None:
-        now = time.perf_counter()
-        if tty:
-            if now - last[0] < 0.2 and done < total:
-                return
-            end = "\n" if done >= total else ""
-            stream.write(f"\r{label}: {done}/{total} ({now - t0:.1f} s){end}")
-        else:
-            quarter = 4 * done // max(total, 1)
-            if quarter == last[1]:
-                return
-            last[1] = quarter
-            stream.write(f"{label}: {done}/{total} ({now - t0:.1f} s)\n")
-        last[0] = now
-        stream.flush()
-
-    return tick
 
 
-def calibrate_folder(paths, spec: TargetSpec, *, step_deg=None, intrinsics=None, mode="auto",
-                     principal_point_px=None, distortion="auto", progress=None,
-                     fit_progress=None) -> SequenceCalibration:
-    """Read ``paths`` (unreadable ones are reported as skipped frames) and calibrate them.
-
-    One photo at a time: its rings are found at full resolution, and only a
-    copy at the default work size (:func:`turntable.worksize.choose_work_size`;
-    photos up to 1.3 MP whole) is kept to read the angle marks from.
-    ``UserError`` when nothing can be calibrated or the photos differ in size;
-    see :func:`turntable.sequence_stage.calibrate_frames` for the rest.
-    """
-    def frames():
-        size = None
-        for p in map(Path, paths):
-            try:
-                img = read_image(p)
-            except UserError as exc:
-                yield p.name, None, str(exc).split(": ", 1)[-1]
-                continue
-            if size is not None and img.shape[:2] != size:
-                raise UserError(f"frames have different sizes: {p} is {img.shape[1]}x{img.shape[0]}, "
-                                f"the first is {size[1]}x{size[0]}")
-            size = img.shape[:2]
-            yield p.name, img, ""
-
-    if not paths:
-        raise UserError("no frames to calibrate")
-    return calibrate_stream(frames(), len(paths), spec, step_deg=step_deg, intrinsics=intrinsics, mode=mode,
-                            principal_point_px=principal_point_px, distortion=distortion, progress=progress,
-                            fit_progress=fit_progress)
-
-
-def calibrate_stream(frames, n: int, spec: TargetSpec, *, step_deg=None, intrinsics=None, mode="auto",
-                     principal_point_px=None, distortion="auto", progress=None,
-                     fit_progress=None) -> SequenceCalibration:
-    """Calibrate frames ``(name, BGR image or None, error)`` given one at a time (a generator that decodes
-    each when it is reached: a folder's photos, a video's frames), ``n`` of them (0: not known ahead).
-
-    Each frame's rings are found at full resolution and only a copy at the
-    default work size is kept, for the angle marks. ``progress(done, total)``
-    counts the frames twice (detection, then single-view calibration);
-    ``fit_progress`` is told each iteration of the joint fit after them.
-    """
-    from .sequence_stage import calibrate_detected, detect_and_reduce
-    from .worksize import choose_work_size
-
-    tick = (lambda done, total: progress(done, 2 * max(n, total))) if progress is not None else None
-    pp = intrinsics.principal_point_px if intrinsics is not None else principal_point_px
-    det = detect_and_reduce(frames, spec, lambda size, ring, name: choose_work_size(size, ring),
-                            principal_point_px=pp, progress=tick, total=n,
-                            expected_size=None if intrinsics is None else (intrinsics.width, intrinsics.height))
-    if not det.names:
-        raise UserError("no frames to calibrate")
-    m = len(det.names)
-    tick2 = (lambda done, total: progress(m + done, 2 * m)) if progress is not None else None
-    return calibrate_detected(det.observations, det.failures, det.names, det.images, spec,
-                              marks_map=None if det.work is None else det.work.S, step_deg=step_deg,
-                              intrinsics=intrinsics, mode=mode, principal_point_px=principal_point_px,
-                              distortion=distortion, progress=tick2, fit_progress=fit_progress)
 
 
 def _fmt(x, spec: str, none: str = "-") -> str:
@@ -184,6 +101,8 @@ def summary_table(seq: SequenceCalibration) -> str:
             lines.append(f"warning         {line}")
     for name, why in m.get("not_estimated", {}).items():
         lines.append(f"note            {name}: {why}")
+    for w in m.get("warnings", []):
+        lines.append(f"warning         {w}")
     for c in m.get("angle_checks", []):
         lines.append(f"warning         {c['image']}: marks and --step-deg disagree by "
                      f"{c['marks_minus_step_deg']:+.2f}°")
@@ -206,24 +125,26 @@ def run(args) -> int:
             next(iter_frames(src, args.every, args.frames))  # raises UserError saying what it is
     intr = None
     if args.intrinsics:
-        from .intrinsics_io import read_opencv_intrinsics
+        from ..intrinsics_io import read_opencv_intrinsics
 
         intr = read_opencv_intrinsics(args.intrinsics)
     if args.step_deg is not None and not (math.isfinite(args.step_deg) and args.step_deg != 0):
         raise UserError(f"--step-deg must be a non-zero number, got {args.step_deg}")
     pp = tuple(args.principal_point) if args.principal_point else None
     kw = dict(step_deg=args.step_deg, intrinsics=intr, mode=args.mode, principal_point_px=pp,
-              distortion="none" if args.no_distortion else "auto",
-              progress=_progress_printer(sys.stderr, "calibrate-sequence"),
-              fit_progress=fit_reporter(Progress(sys.stderr), "joint fit"))
+              distortion="none" if args.no_distortion else "auto")
+    progress = Progress(sys.stderr)
+    kw["fit_progress"] = fit_reporter(progress, "joint fit")
+    with progress.stage("frames") as tick:  # each frame twice: rings, then its own calibration
+        if paths is not None:
+            seq = calibrate_folder(paths, spec, progress=tick, **kw)
+        else:  # the video's frames decoded one at a time, never all held at full resolution
+            seq = calibrate_stream(((f.name, f.bgr, f.error) for f in iter_frames(src, args.every, args.frames)),
+                                   0, spec, progress=tick, **kw)
     if paths is not None:
-        seq = calibrate_folder(paths, spec, **kw)
         exif = exif_focal_report(paths, seq.intrinsics.width, seq.intrinsics.height, seq.intrinsics.focal_px)
         if exif is not None:
             seq = dataclasses.replace(seq, meta={**seq.meta, "exif_focal": exif})
-    else:  # the video's frames decoded one at a time, never all held at full resolution
-        seq = calibrate_stream(((f.name, f.bgr, f.error) for f in iter_frames(src, args.every, args.frames)), 0,
-                               spec, **kw)
     for f in seq.frames:
         if not f.ok:
             where = src / f.image if paths is not None else f"{src} (frame {f.image})"

@@ -12,7 +12,7 @@ from calib.types import SequenceCalibration
 from ..cameras_io import read_cameras, write_cameras
 from ..errors import UserError
 from ..frames import Frame
-from ..progress import Progress
+from ..progress import Progress, fit_reporter
 from ..stagecache import StageCache, file_digest
 from ..worksize import WorkSize
 from .frames import frame_files
@@ -61,9 +61,11 @@ def calibrate(loaded, opts: ReconstructOptions, progress: Progress, key: str,
         try:  # the angle marks are read on the work images (they are sampled in millimetres)
             seq = calibrate_detected(observations, loaded.failures, loaded.names, loaded.images, opts.spec,
                                      marks_map=loaded.work.S, step_deg=opts.step_deg, intrinsics=intr,
-                                     progress=tick)
+                                     progress=tick, fit_progress=fit_reporter(progress, "cameras: joint fit"))
         except UserError as exc:
             raise UserError(f"{opts.input}: {exc}") from None
+    for warning in seq.meta.get("warnings", []):
+        progress.note(f"cameras: WARNING: {warning}")
     seq = replace(seq, meta={**seq.meta, "stage_key": key})
     names = [n for n, o in zip(loaded.names, observations, strict=True) if o is not None]
     conics = np.array([[o.conics["outer"], o.conics["inner"]] for o in observations if o is not None])

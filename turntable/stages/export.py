@@ -85,6 +85,7 @@ def summary(seq, names, skipped, mesh, progress, fusion_note, files) -> dict:
                  "watertight": bool(tm.is_watertight), "volume_cm3": float(tm.volume) / 1000.0,
                  "extent_mm": (tm.bounds[1] - tm.bounds[0]).tolist()},
         "fusion": fusion_note,
+        "warnings": list(meta.get("warnings", [])),
         "time_s": {k: round(v, 2) for k, v in progress.times_s.items()},
         "files": {k: frame_name(str(v)) for k, v in files.items()},  # strict JSON whatever the path
     }
