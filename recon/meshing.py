@@ -31,8 +31,8 @@ Units are the table frame's millimetres throughout.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import trimesh
@@ -154,9 +154,13 @@ def _marching_cubes_closed(values: np.ndarray, origin_table: np.ndarray, voxel_m
     non-manifold edges.
     """
     eps = np.float32(1e-3 * voxel_mm)
-    v = values.copy()
-    v[np.abs(v) < eps] = -eps
-    v = np.pad(v, step, mode="constant", constant_values=-voxel_mm)
+    # the padded grid is allocated once and filled a slab at a time (a copy, then np.pad of it, held
+    # three grids at once: 7.7 GB at resolution 1024)
+    v = np.full([n + 2 * step for n in values.shape], -voxel_mm, dtype=values.dtype)
+    for x0 in range(0, values.shape[0], 32):
+        slab = values[x0:x0 + 32]
+        v[step + x0:step + x0 + len(slab), step:step + values.shape[1], step:step + values.shape[2]] = \
+            np.where(np.abs(slab) < eps, -eps, slab)
     verts, faces, _, _ = measure.marching_cubes(v, level=0.0, spacing=(voxel_mm,) * 3, step_size=step)
     # Padding shifts indices by ``step`` voxels. skimage winds triangles
     # clockwise seen from the side of larger values (our inside) for an

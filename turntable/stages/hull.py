@@ -19,6 +19,10 @@ from .silhouettes import (
 )
 
 
+class GridTooLarge(UserError):
+    """``--resolution`` asks for a grid that does not fit in memory (refused before it is allocated)."""
+
+
 def carve_hull(masks, K, Ts, opts, cache, key, progress, vol):
     """The visual hull of ``masks`` in the working volume ``vol`` (cached under ``key``)."""
     from recon.types import VoxelHull
@@ -30,13 +34,15 @@ def carve_hull(masks, K, Ts, opts, cache, key, progress, vol):
         progress.note("hull: reused")
         meta = {"touches_side": int(hit["touches"][0]), "touches_top": int(hit["touches"][1])}
         return VoxelHull(values=hit["values"], origin_table=hit["origin"], voxel_mm=float(hit["voxel_mm"]), meta=meta)
-    from recon.carving import carve_hull
+    from recon.carving import HullTooLarge, carve_hull
 
     with progress.stage("carving") as tick:
         try:
             hull = carve_hull(masks, K, Ts, radius_mm=vol.radius_mm, height_mm=vol.height_mm,
                               resolution=opts.resolution, max_rejections=min(max_rejections(opts), len(masks) - 1),
                               progress=tick)
+        except HullTooLarge as exc:  # not the silhouettes' fault: say only what to change
+            raise GridTooLarge(f"{opts.input}: --resolution {opts.resolution}: {exc}") from None
         except ValueError as exc:
             raise UserError(f"{opts.input}: carving: {exc}") from None
     cache.save("hull", key, values=hull.values, origin=hull.origin_table, voxel_mm=np.array(hull.voxel_mm),
@@ -84,6 +90,8 @@ def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progres
         try:
             return carve_hull(sil.masks[keep] | sil.unknown[keep], K, Ts[keep], opts, cache, hull_key, progress,
                                vol)
+        except GridTooLarge:
+            raise
         except UserError as exc:  # nothing left: say what each view's silhouette was
             raise UserError(f"{exc}; {describe(names, sil)}" + (f"; {GREY}" if grey else "")) from None
 
