@@ -76,8 +76,8 @@ class HullTooLarge(ValueError):
         self.needed_bytes, self.available_bytes = int(needed_bytes), int(available_bytes)
         super().__init__(
             f"resolution {resolution} needs a {' x '.join(map(str, self.shape))} voxel grid: about "
-            f"{needed_bytes / 2**30:.1f} GB to carve, more than the {available_bytes / 2**30:.1f} GB of memory "
-            f"available; use a lower resolution (each halving divides it by 8)")
+            f"{needed_bytes / 2**30:.1f} GB to carve and mesh, more than the {available_bytes / 2**30:.1f} GB of "
+            f"memory available; use a lower resolution (each halving divides it by 8)")
 
 
 def memory_available_bytes() -> int | None:
@@ -395,10 +395,19 @@ def _grid(views: _Views, region: _Region, resolution: int) -> tuple[tuple, np.nd
 
 
 def _peak_bytes(dims, n_views: int, image_hw: tuple[int, int]) -> int:
-    """Estimated peak (bytes) of carving a grid of ``dims``: the grid, the level before it (1/8), the
-    views' float32 distance maps, and the bounded slab and chunk buffers."""
+    """Estimated peak (bytes) of carving a grid of ``dims`` and meshing it.
+
+    Carving: the grid, the level before it (1/8), the views' float32 distance
+    maps, and the bounded slab and chunk buffers. Meshing the grid afterwards
+    (``recon.meshing``: the grid, its padded copy and marching cubes' own
+    buffers) takes more: measured 6.5 GB peak RSS for a 2.9 GB grid
+    (``reconstruct --resolution 1024``, data/sample), about 2.2 grids; the
+    larger of the two is what a run needs.
+    """
     n = int(np.prod(np.asarray(dims, dtype=np.int64)))
-    return int(4 * n * 9 // 8 + 4 * n_views * image_hw[0] * image_hw[1] + _SLAB_BYTES)
+    carve = 4 * n * 9 // 8 + 4 * n_views * image_hw[0] * image_hw[1] + _SLAB_BYTES
+    mesh = int(2.3 * 4 * n) + _SLAB_BYTES
+    return int(max(carve, mesh))
 
 
 def hull_peak_bytes(masks: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, *,
