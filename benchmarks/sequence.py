@@ -37,7 +37,7 @@ from calib.camera import camera_centre_table  # noqa: E402
 from calib.sequence import _yaw_of  # noqa: E402
 from turntable.cameras_io import read_cameras  # noqa: E402
 from turntable.images import list_images  # noqa: E402
-from turntable.sequence_stage import calibrate_folder  # noqa: E402
+from turntable.stages.calibration import calibrate_folder  # noqa: E402
 
 
 def scenes(frames: int, quick: bool):

@@ -298,7 +298,7 @@ def test_silhouettes_confined_to_a_small_volume_touch_its_side_and_top(scene):
     import cv2
 
     from recon.silhouettes import cylinder_region
-    from turntable.volume_stage import WorkingVolume, mask_touches
+    from turntable.stages.volume import WorkingVolume, mask_touches
 
     gt = read_cameras(scene / "cameras_gt.json")
     K, Ts = gt.intrinsics.K, np.stack([f.T_cam_table for f in gt.frames])

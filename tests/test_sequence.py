@@ -355,7 +355,7 @@ def test_a_frame_that_does_not_fit_the_shared_camera_is_dropped(monkeypatch):
 
 def test_stage_rejects_mixed_sizes_and_mismatched_intrinsics():
     from turntable.errors import UserError
-    from turntable.sequence_stage import calibrate_frames
+    from turntable.stages.calibration import calibrate_frames
 
     a, b = np.zeros((60, 80, 3), np.uint8), np.zeros((60, 90, 3), np.uint8)
     with pytest.raises(UserError, match="different sizes"):

@@ -219,7 +219,7 @@ def _touching_views(masks, T, radius_mm) -> set[int]:
     """Views whose silhouette reaches the side or top of the working volume's image (what
     ``reconstruct`` grows the volume on)."""
     from recon.carving import largest_visible_height_mm
-    from turntable.volume_stage import WorkingVolume, mask_touches
+    from turntable.stages.volume import WorkingVolume, mask_touches
 
     h = largest_visible_height_mm(K, T, W, H)
     side, top = mask_touches(masks, K, T, WorkingVolume(radius_mm, h, radius_mm, h, "test"))

@@ -1,6 +1,6 @@
 """The stage cache in ``OUT/.turntable``: reused only for the same bytes and options, never trusted when damaged.
 
-The file-level checks drive :class:`turntable.stagecache.StageCache` directly; the
+The file-level checks drive :class:`turntable.stages.cache.StageCache` directly; the
 end-to-end ones run ``turntable reconstruct`` on one small rendered sequence
 (8 frames, 640x480, 32^3 hull, no fusion), edit an input in place (keeping its
 size and modification time where the edit allows) or damage a cache file, and
@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from turntable.cli import main
-from turntable.stagecache import StageCache
+from turntable.stages.cache import StageCache
 from turntable.synth import SynthOptions, make_sequence
 
 VOLUME_REL_TOL = 0.02  # automatic silhouettes recomputed: the model's volume may move this much

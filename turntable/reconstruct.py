@@ -35,10 +35,10 @@ from .errors import UserError
 from .frames import Frame
 from .outdir import DISK_FULL_ERRNOS, OutputFolder, write_error
 from .progress import Progress
-from .stagecache import StageCache, file_digest, files_digest, stage_key
 from .stages import cameras, export, silhouettes
 from .stages import frames as frames_stage
 from .stages import hull as hull_stage
+from .stages.cache import StageCache, file_digest, files_digest, stage_key
 from .stages.options import MIN_VIEWS, ReconstructOptions
 from .stages.silhouettes import GREY  # noqa: F401  (kept importable from here)
 
@@ -167,7 +167,7 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
         hull_mesh = clip_to_hull(mesh_from_hull(hull, max_faces=opts.max_faces), hull)
     mesh, fused, fusion_note = hull_mesh, None, "disabled (--no-fusion)"
     if opts.fusion:
-        from .fusion_stage import run_fusion
+        from .stages.fusion import run_fusion
 
         mesh, fused, fusion_note = run_fusion(images_rgb, masks, K, Ts, hull, hull_mesh, opts, progress)
 

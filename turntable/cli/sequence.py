@@ -21,7 +21,7 @@ from ..errors import UserError
 from ..frames import VIDEO_SUFFIXES, iter_frames, select_indices
 from ..images import exif_focal_report, focal_warning, list_images
 from ..progress import Progress, fit_reporter
-from ..sequence_stage import calibrate_folder, calibrate_stream
+from ..stages.calibration import calibrate_folder, calibrate_stream
 from .args import add_target_arguments, target_from_args
 
 __all__ = ["add_arguments", "run", "summary_table"]

@@ -1,15 +1,16 @@
 """The stages of ``turntable reconstruct``, one module each, in the order they run.
 
-=============  ==============================================================
-``frames``     decode the input once: rings at full size, pixels at the work size
-``cameras``    sequence calibration (``cameras.json``), ``--cameras``, or the cached one
-``silhouettes``  automatic or ``--masks``; a verdict per view (ok / conservative / rejected)
-``hull``       visual-hull carving in a working volume grown until the object fits
-fusion         per-view stereo and fused surface (:mod:`turntable.fusion_stage`)
-``export``     model files, ``summary.json`` and the recording, into the staging folder
-=============  ==============================================================
+================  ==============================================================
+``frames``        decode the input once: rings at full size, pixels at the work size
+``cameras``       sequence calibration (``calibration``), ``--cameras``, or the cached one
+``silhouettes``   automatic or ``--masks``; a verdict per view (ok / conservative / rejected)
+``hull``          visual-hull carving in a working volume (``volume``) grown until the object fits
+``fusion``        per-view stereo and the fused surface, kept only where held-out views confirm it
+``export``        model files, ``summary.json`` and the recording, into the staging folder
+================  ==============================================================
 
 :mod:`turntable.reconstruct` runs them in order inside one :class:`turntable.outdir.OutputFolder`;
-each caches its result in :class:`turntable.stagecache.StageCache`. ``options`` holds
-:class:`ReconstructOptions`, which every stage reads.
+each caches its result in :class:`turntable.stages.cache.StageCache`. ``options`` holds
+:class:`ReconstructOptions`, which every stage reads; ``calibration`` is also what
+``turntable calibrate-sequence`` runs.
 """

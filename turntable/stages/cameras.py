@@ -13,8 +13,8 @@ from ..cameras_io import read_cameras, write_cameras
 from ..errors import UserError
 from ..frames import Frame
 from ..progress import Progress, fit_reporter
-from ..stagecache import StageCache, file_digest
 from ..worksize import WorkSize
+from .cache import StageCache, file_digest
 from .frames import frame_files
 from .options import ReconstructOptions
 
@@ -49,7 +49,7 @@ DETECTIONS = {"names": ("U", ("N",)), "conics": ("f", ("N", 2, 3, 3)), "cameras_
 def calibrate(loaded, opts: ReconstructOptions, progress: Progress, key: str,
                    cache: StageCache) -> tuple[SequenceCalibration, dict]:
     """The sequence calibration from the rings found at full resolution, and the ring conics per frame name."""
-    from ..sequence_stage import calibrate_detected
+    from .calibration import calibrate_detected
 
     intr = None
     if opts.intrinsics is not None:

@@ -13,8 +13,8 @@ from calib.types import SequenceCalibration
 from ..errors import UserError
 from ..frames import iter_frames
 from ..progress import Progress
-from ..stagecache import files_digest, stage_key
 from ..worksize import WorkSize, choose_work_size
+from .cache import files_digest, stage_key
 from .options import ReconstructOptions
 
 
@@ -38,9 +38,9 @@ def load(opts: ReconstructOptions, progress: Progress, seq: SequenceCalibration 
     The work size is chosen on the first readable frame, from its size and the
     outer ring's size in it (:func:`turntable.worksize.choose_work_size`; the
     pixel count alone where its rings are not found).
-    Returns :class:`turntable.sequence_stage.DetectedFrames`.
+    Returns :class:`turntable.stages.calibration.DetectedFrames`.
     """
-    from ..sequence_stage import detect_and_reduce
+    from .calibration import detect_and_reduce
 
     intr = None
     if seq is None and opts.intrinsics is not None:

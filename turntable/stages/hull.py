@@ -7,7 +7,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..errors import UserError
-from ..stagecache import stage_key
+from .cache import stage_key
 from .options import MIN_VIEWS, max_rejections
 from .silhouettes import (
     GREY,
@@ -59,13 +59,13 @@ class HullStage:
     rejected: dict[str, str]  # frame name -> why its silhouette was dropped
     conservative: dict[str, str]  # frame name -> why its silhouette was kept with every doubtful pixel
     hull: object | None  # recon.carving.VoxelHull; None when fewer than MIN_VIEWS silhouettes are usable
-    volume: object  # turntable.volume_stage.WorkingVolume, as grown
+    volume: object  # turntable.stages.volume.WorkingVolume, as grown
     report: dict  # summary.json's "working_volume"
 
 
 def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progress, ws, intr=None) -> HullStage:
     """Silhouettes and hull in a working volume grown until the object fits (or the view ends)."""
-    from ..volume_stage import MIN_TOUCH_VIEWS, initial_volume, mask_touches
+    from .volume import MIN_TOUCH_VIEWS, initial_volume, mask_touches
 
     H, W = images_rgb[0].shape[:2]
     try:

@@ -17,9 +17,9 @@ import numpy as np
 from calib.target import TargetSpec
 from calib.types import CalibrationError, Intrinsics, SequenceCalibration, TargetObservation
 
-from .errors import UserError
-from .images import read_image
-from .worksize import WorkSize
+from ..errors import UserError
+from ..images import read_image
+from ..worksize import WorkSize
 
 log = logging.getLogger(__name__)
 
@@ -215,7 +215,7 @@ def calibrate_folder(paths, spec: TargetSpec, *, step_deg=None, intrinsics=None,
     copy at the default work size (:func:`turntable.worksize.choose_work_size`;
     photos up to 1.3 MP whole) is kept to read the angle marks from.
     ``UserError`` when nothing can be calibrated or the photos differ in size;
-    see :func:`turntable.sequence_stage.calibrate_frames` for the rest.
+    see :func:`turntable.stages.calibration.calibrate_frames` for the rest.
     """
     def frames():
         size = None
@@ -249,7 +249,7 @@ def calibrate_stream(frames, n: int, spec: TargetSpec, *, step_deg=None, intrins
     counts the frames twice (detection, then single-view calibration);
     ``fit_progress`` is told each iteration of the joint fit after them.
     """
-    from .worksize import choose_work_size
+    from ..worksize import choose_work_size
 
     tick = (lambda done, total: progress(done, 2 * max(n, total))) if progress is not None else None
     pp = intrinsics.principal_point_px if intrinsics is not None else principal_point_px
