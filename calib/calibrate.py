@@ -20,6 +20,8 @@ still gave 31 % median error. Views under ``MIN_TILT_DEG`` = 8° are refused.
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 
 from .camera import angle_between_deg
@@ -107,7 +109,8 @@ def calibrate_view(
     """
     if solver not in SOLVERS:
         raise ValueError(f"unknown solver {solver!r}; choose one of {', '.join(SOLVERS)}")
-    pp = image_centre(obs.width, obs.height) if principal_point_px is None else tuple(map(float, principal_point_px))
+    pp = (image_centre(obs.width, obs.height) if principal_point_px is None
+          else cast(tuple[float, float], tuple(map(float, principal_point_px))))
     if len(obs.radii_mm()) < 2:
         raise CalibrationError(f"need two concentric rings, found {len(obs.radii_mm())}")
     has_stroke = any(e.side != 0 for e in obs.edges)

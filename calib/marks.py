@@ -37,6 +37,7 @@ Method
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -207,10 +208,11 @@ def _band_radii(spec: TargetSpec) -> dict[str, np.ndarray]:
 
     ring_out = spec.r_outer_mm + spec.stroke_mm / 2.0
     core = max(spec.stroke_mm / 4.0, 0.25)
+    r0, r1 = cast(float, spec.mark_r0_mm), cast(float, spec.mark_r1_mm)  # set by TargetSpec.__post_init__
     return {"core": span(spec.r_outer_mm - core, spec.r_outer_mm + core),
-            "gap": span(ring_out + 1.0, spec.mark_r0_mm - 1.0),
-            "track": span(spec.mark_r0_mm + 1.5, spec.mark_r1_mm - 1.5),
-            "outer": span(spec.mark_r1_mm + 1.0, spec.mark_r1_mm + 3.0)}
+            "gap": span(ring_out + 1.0, r0 - 1.0),
+            "track": span(r0 + 1.5, r1 - 1.5),
+            "outer": span(r1 + 1.0, r1 + 3.0)}
 
 
 def _polar_bands(grey, K, T, spec, dist) -> dict[str, np.ndarray]:
@@ -328,17 +330,17 @@ def _edge_offsets(track, valid, contrast: float, shift: int, spec: TargetSpec) -
         x = _crossing(track[window % n] - 0.5 * (a + b), window, pred)
         if x is not None:
             out.append((phi, x * STEP_DEG - phi))
-    out = np.asarray(out, dtype=np.float64).reshape(-1, 2)
-    return out[:, 0], out[:, 1]
+    arr = np.asarray(out, dtype=np.float64).reshape(-1, 2)
+    return arr[:, 0], arr[:, 1]
 
 
 def _crossing(d: np.ndarray, cols: np.ndarray, pred: float) -> float | None:
     """Sub-sample zero crossing of ``d`` (samples at ``cols``) nearest ``pred``."""
     s = np.signbit(d)
-    k = np.flatnonzero(s[1:] != s[:-1])
-    if k.size == 0:
+    ks = np.flatnonzero(s[1:] != s[:-1])
+    if ks.size == 0:
         return None
-    k = int(k[np.argmin(np.abs(cols[k] + 0.5 - pred))])
+    k = int(ks[np.argmin(np.abs(cols[ks] + 0.5 - pred))])
     # linear fit through the transition samples around the crossing (at most 3 each side)
     amp = np.abs(d[max(k - 12, 0):k + 14]).max()
     lo, hi = k, k + 1

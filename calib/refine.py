@@ -246,7 +246,7 @@ def subsample_edges(edges: tuple[EdgePoints, ...], max_points: int) -> tuple[Edg
 
 def _stroke_observable(edges) -> bool:
     """True when some ring has points on both edges of its stroke."""
-    sides = {}
+    sides: dict[float, set[int]] = {}
     for e in edges:
         sides.setdefault(e.ring_radius_mm, set()).add(e.side)
     return any({-1, 1} <= s for s in sides.values())

@@ -177,6 +177,7 @@ def _candidate_pairs(rings: list[tuple[np.ndarray, float]], spec: TargetSpec) ->
         return [(g[1], g[2]) for g in good[:MAX_PAIRS]]
     if concentric is not None:
         raise CalibrationError(f"radius ratio {concentric[1]:.2f} does not match the target's {spec.radius_ratio:.2f}")
+    assert strongest is not None  # two rings or more: the loop above ran
     raise CalibrationError(f"rings not concentric (centres {strongest[1]:.0f} px apart)")
 
 
@@ -299,6 +300,7 @@ def detect_rings(image, spec: TargetSpec, *, principal_point_px=None,
     hint = next((h for h in (_ratio_hint(r, spec) for r in seen) if h), "")  # only when failing
     if hint and "ratio" not in str(first_error):
         raise CalibrationError(f"{first_error} ({hint})")
+    assert first_error is not None  # every factor either returned or failed with a CalibrationError
     raise first_error
 
 

@@ -302,17 +302,17 @@ def _extend(fit: _Fit, base: tuple[str, ...], extra: tuple[str, ...], notes: dic
     refitted until all pass: freeing k2 can make k1 look unconstrained only
     because the two trade off.
     """
-    extra = list(extra)
-    while extra:
-        trial = _refit(fit, base + tuple(extra), report=report,
-                       stage=f"{fit.problem.model} + {', '.join(extra)}")
-        ratio = {n: trial.std[n] / MAX_STD[n] if np.isfinite(trial.std[n]) else np.inf for n in extra}
-        worst = max(extra, key=lambda n: ratio[n])
+    left = list(extra)
+    while left:
+        trial = _refit(fit, base + tuple(left), report=report,
+                       stage=f"{fit.problem.model} + {', '.join(left)}")
+        ratio = {n: trial.std[n] / MAX_STD[n] if np.isfinite(trial.std[n]) else np.inf for n in left}
+        worst = max(left, key=lambda n: ratio[n])
         if ratio[worst] <= 1.0:
             return trial
         notes[worst] = (f"not estimated: unconstrained by these views (1 sigma {trial.std[worst]:.3g} > "
                         f"{MAX_STD[worst]:g}); kept at {'the image centre' if worst in ('cx', 'cy') else '0'}")
-        extra.remove(worst)
+        left.remove(worst)
     return fit
 
 
@@ -457,6 +457,7 @@ def calibrate_sequence(
         summary = "; ".join(sorted({r for r in reasons if r}))
         raise CalibrationError(f"no frame could be calibrated ({summary})")
     obs0 = observations[ok[0]]
+    assert obs0 is not None  # a calibrated frame has its observation
     return _calibrate_from_singles(singles, reasons, ok, names, (obs0.width, obs0.height), spec, step_deg,
                                    intrinsics, mode, pp, distortion, angle_reader, fit_progress)
 
@@ -647,6 +648,7 @@ def _reread_yaw(fit: _Fit, used: list[int], singles, reader: AngleReader) -> Non
     through that frame's own f and without the distortion.
     """
     st = fit.state
+    assert st.R is not None and st.t is not None  # handheld
     for i, k in enumerate(used):
         if not singles[k].yaw_ok:
             continue
@@ -700,7 +702,8 @@ def _result(fit: _Fit, mode, why, singles, reasons, ok, used, names, size, intr,
         s = singles[k]
         if k in pos:
             i = pos[k]
-            angle = (TURN_SIGN * math.degrees(st.theta[i])) % 360.0 if mode == "turntable" else float("nan")
+            # st.theta is set in turntable mode, the only one that reads it
+            angle = (TURN_SIGN * math.degrees(st.theta[i])) % 360.0 if mode == "turntable" else float("nan")  # type: ignore[index]
             status = "ok" if (mode == "turntable" or s.yaw_ok) else f"angle marks unreadable: {s.angle_error}"
             frames.append(FramePose(image=names[k], angle_deg=angle, T_cam_table=Ts[i],
                                     rms_px=float(fit.rms_per_frame[i]), status=status))
@@ -724,6 +727,7 @@ def _result(fit: _Fit, mode, why, singles, reasons, ok, used, names, size, intr,
         "intrinsics_source": "given" if intr is not None else "estimated",
     }
     if mode == "turntable":
+        assert st.R_cam_axis is not None and st.d_xz is not None
         C = -st.R_cam_axis.T @ st.t_cam_axis
         meta["turntable"] = {
             "pattern_offset_from_axis_mm": [float(st.d_xz[0]), float(st.d_xz[1])],

@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -139,7 +140,9 @@ class _State:
 
     def poses(self) -> list[np.ndarray]:
         if self.R is not None:
+            assert self.t is not None  # handheld: R and t are set together
             return [make_T(R, t) for R, t in zip(self.R, self.t, strict=True)]
+        assert self.theta is not None and self.d_xz is not None  # turntable
         Ts = []
         for th in self.theta:
             R = self.R_cam_axis @ rot_y(th)
@@ -188,7 +191,8 @@ class _Problem:
         self.row_frame = np.repeat(np.arange(len(frames)), self.n_edge)
         self.mark_frames = np.flatnonzero(self.has_mark)
         self.mark_R_stack = np.array([self.mark_R[k] for k in self.mark_frames]).reshape(-1, 3, 3)
-        self._undistorted = (None, None)  # (key, uv): the last K, dist's undistorted points
+        # (key, uv): the last K, dist's undistorted points
+        self._undistorted: tuple[tuple[bytes, bytes] | None, np.ndarray | None] = (None, None)
 
     # -- packing ------------------------------------------------------------
     def unpack(self, x: np.ndarray) -> _State:
@@ -210,6 +214,7 @@ class _Problem:
             i += 1
         st = _State(K=K, dist=dist, stroke=stroke)
         if self.model == "turntable":
+            assert s0.R_cam_axis is not None and s0.theta is not None
             R0 = s0.R_cam_axis
             w = x[i] * R0[:, 0] + x[i + 1] * R0[:, 2]
             i += 2
@@ -224,6 +229,7 @@ class _Problem:
             theta[idx] += x[self.local_start[idx]]
             st.theta = theta
         else:
+            assert s0.R is not None and s0.t is not None
             st.R, st.t = [], []
             for k in range(len(self.frames)):
                 j = self.local_start[k]
@@ -235,6 +241,7 @@ class _Problem:
         """Every frame's ``T_cam_table`` (n, 4, 4) of a full state."""
         if st.R is not None:
             return np.array(st.poses()).reshape(-1, 4, 4)
+        assert st.theta is not None and st.R_cam_axis is not None and st.d_xz is not None  # turntable
         c, s = np.cos(st.theta), np.sin(st.theta)
         Ry = np.zeros((len(st.theta), 3, 3))
         Ry[:, 0, 0], Ry[:, 0, 2], Ry[:, 1, 1], Ry[:, 2, 0], Ry[:, 2, 2] = c, s, 1.0, -s, c
@@ -251,7 +258,7 @@ class _Problem:
         key = (K.tobytes(), dist.tobytes())
         if self._undistorted[0] != key:
             self._undistorted = (key, undistort_px(self.uv_px, K, dist))
-        return self._undistorted[1]
+        return cast(np.ndarray, self._undistorted[1])  # set for this key just above
 
     # -- residuals ----------------------------------------------------------
     def _mark_residual(self, k: int, R_model: np.ndarray) -> float:
@@ -296,11 +303,11 @@ class _Problem:
             J.glob[:, j] = (self.residuals(xp) - r0) / h
         for c in range(n_l):
             frames = np.flatnonzero(self.n_local > c)
-            j = self.local_start[frames] + c
+            cols = self.local_start[frames] + c
             h = np.zeros(len(self.frames))
-            h[frames] = 1e-6 * np.maximum(1.0, np.abs(x[j]))
+            h[frames] = 1e-6 * np.maximum(1.0, np.abs(x[cols]))
             xp = x.copy()
-            xp[j] += h[frames]
+            xp[cols] += h[frames]
             r = self.residuals(xp)
             rows = np.concatenate([np.flatnonzero(h[self.row_frame] > 0),
                                    self.mark_row[frames[self.has_mark[frames]]]]).astype(int)

@@ -41,6 +41,7 @@ Angle marks (``marks=True``)
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -126,7 +127,8 @@ class TargetSpec:
     def extent_mm(self) -> float:
         """Radius (mm) of the outermost ink: the mark track, or the outer ring's edge."""
         ring = self.r_outer_mm + self.stroke_mm / 2.0
-        return max(ring, self.mark_r1_mm) if self.marks else ring
+        # __post_init__ has replaced a None mark radius by its value
+        return max(ring, cast(float, self.mark_r1_mm)) if self.marks else ring
 
 
 def _check_code(code: str) -> None:
