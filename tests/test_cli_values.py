@@ -41,3 +41,39 @@ def test_an_internal_error_has_its_own_exit_code(monkeypatch, capsys, tmp_path):
     code = main(["pattern", str(tmp_path / "t.pdf")])
     err = capsys.readouterr().err
     assert code == 4 and "internal error: RuntimeError: simulated bug" in err and "Traceback" not in err
+
+
+def test_version_flag_and_package_version(capsys):
+    import turntable
+
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    assert capsys.readouterr().out.strip() == f"turntable {turntable.__version__}"
+    assert turntable.__version__ and turntable.__version__ != "0+unknown"  # installed: the metadata's version
+
+
+def test_verbose_counts_before_and_after_the_command(tmp_path, caplog):
+    import logging
+
+    caplog.set_level(logging.DEBUG)
+    assert main(["pattern", str(tmp_path / "a.pdf"), "--r-outer", "80", "--r-inner", "50"]) == 0
+    assert logging.getLogger().level == logging.WARNING
+    assert main(["-v", "pattern", str(tmp_path / "b.pdf"), "--r-outer", "80", "--r-inner", "50", "-v"]) == 0
+    assert logging.getLogger().level == logging.DEBUG  # -v twice, one each side of the command
+
+
+def test_importing_main_module_does_not_run_the_cli():
+    import importlib
+
+    importlib.import_module("turntable.__main__")  # would sys.exit() without the __name__ guard
+
+
+def test_help_lists_commands_in_workflow_order_and_the_exit_codes(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = capsys.readouterr().out
+    listed = [line.split()[0] for line in out.splitlines() if line.startswith("    ") and line.split()]
+    order = [listed.index(c) for c in ("pattern", "calibrate", "calibrate-sequence", "reconstruct", "view")]
+    assert order == sorted(order)
+    assert "exit codes:" in out and "internal error" in out and "143 SIGTERM" in out

@@ -1,5 +1,8 @@
+"""``python -m turntable``: the same as the ``turntable`` command."""
+
 import sys
 
 from .cli import main
 
-sys.exit(main())
+if __name__ == "__main__":
+    sys.exit(main())

@@ -17,16 +17,30 @@ import sys
 
 from ..errors import UserError
 
-# name -> (module, one-line help)
+# name -> (module, one-line help), in the order of the work: print the target, check the camera, calibrate a
+# sequence, reconstruct, look at it; synth makes test sequences
 COMMANDS: dict[str, tuple[str, str]] = {
-    "calibrate": ("turntable.cli.calibrate", "focal length and table pose from single photos of the two-ring target"),
     "pattern": ("turntable.cli.pattern", "write the printable target (PDF, SVG or PNG)"),
-    "synth": ("turntable.cli.synth", "render a synthetic turntable sequence with ground truth"),
+    "calibrate": ("turntable.cli.calibrate", "focal length and table pose from single photos of the two-ring target"),
     "calibrate-sequence": ("turntable.cli.sequence", "calibrate a whole turntable sequence into cameras.json"),
     "reconstruct": ("turntable.cli.reconstruct",
                     "photos of an object on the turntable -> coloured mesh + Rerun recording"),
     "view": ("turntable.cli.view", "open a Rerun recording written by reconstruct"),
+    "synth": ("turntable.cli.synth", "render a synthetic turntable sequence with ground truth"),
 }
+
+EPILOG = """example:
+  turntable pattern target.pdf --r-outer 80 --r-inner 50
+  turntable reconstruct photos/ --r-outer 80 --r-inner 50 --out scan/
+
+exit codes:
+  0    success
+  1    finished, but some inputs failed (each named on stderr; the rest were used)
+  2    bad input or an impossible request (one line naming the file and the reason)
+  3    reconstruct finished and wrote everything, but the model failed a check (!! CHECK FAILED)
+  4    internal error (a bug of ours; -vv shows the traceback)
+  130  interrupted (Ctrl-C); 143 SIGTERM, 129 SIGHUP: outputs left as they were
+"""
 
 
 def _available() -> dict[str, tuple[str, str]]:
@@ -38,11 +52,19 @@ def _available() -> dict[str, tuple[str, str]]:
 
 
 def build_parser(commands: dict[str, tuple[str, str]]) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="turntable", description=__doc__.splitlines()[0])
+    from .. import __version__
+
+    parser = argparse.ArgumentParser(prog="turntable", description=__doc__.splitlines()[0], epilog=EPILOG,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"turntable {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv: debug, tracebacks)")
+    # the same flag after the command (turntable reconstruct ... -v): counted into the same total
+    after = argparse.ArgumentParser(add_help=False)
+    after.add_argument("-v", "--verbose", action="count", dest="verbose_after", default=0,
+                       help="more logging (-vv: debug, tracebacks)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, (mod, help_) in commands.items():
-        p = sub.add_parser(name, help=help_, description=help_)
+        p = sub.add_parser(name, help=help_, description=help_, parents=[after])
         importlib.import_module(mod).add_arguments(p)
         p.set_defaults(_module=mod)
     return parser
@@ -85,6 +107,7 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = build_parser(_available())
     args = parser.parse_args(argv)
+    args.verbose += getattr(args, "verbose_after", 0)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     # force: rebind to the current stderr on every call (tests, or a host program, may swap it)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", force=True)

@@ -45,7 +45,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--export-nerfstudio", action="store_true", help="also write OUT/transforms.json")
     parser.add_argument("--spawn", action="store_true", help="open the Rerun viewer on the recording")
     parser.add_argument("--overwrite", action="store_true", help="recompute every stage")
-    parser.add_argument("--quiet", action="store_true", help="no progress output")
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress output")
 
 
 def options_from_args(args) -> ReconstructOptions:
