@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 import cv2
 import numpy as np
@@ -71,7 +71,7 @@ class HullTooLarge(ValueError):
     carve's estimated peak, :func:`hull_peak_bytes`) and ``available_bytes``.
     """
 
-    def __init__(self, resolution: int, shape: tuple, needed_bytes: int, available_bytes: int):
+    def __init__(self, resolution: int, shape: Iterable[int], needed_bytes: int, available_bytes: int):
         self.resolution, self.shape = resolution, tuple(int(n) for n in shape)
         self.needed_bytes, self.available_bytes = int(needed_bytes), int(available_bytes)
         super().__init__(

@@ -128,7 +128,7 @@ def glb_bytes(vertices_m: np.ndarray, faces: np.ndarray, normals: np.ndarray,
     n = np.asarray(normals, np.float64)
     length = np.linalg.norm(n, axis=1, keepdims=True)
     n = np.where(length > 1e-12, n / np.maximum(length, 1e-12), (0.0, 1.0, 0.0))  # glTF: NORMAL must be unit
-    arrays = [np.asarray(vertices_m, np.float32), n.astype(np.float32)]
+    arrays: list[np.ndarray] = [np.asarray(vertices_m, np.float32), n.astype(np.float32)]
     attributes = {"POSITION": 0, "NORMAL": 1}
     if colors_rgb is not None:
         lin = srgb_to_linear(np.asarray(colors_rgb, np.float64) / 255.0)

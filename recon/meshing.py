@@ -350,7 +350,8 @@ def remesh_watertight(vertices_table: np.ndarray, faces: np.ndarray, max_faces: 
         n = np.ceil((hi - lo) / voxel).astype(int) + 4
         axes = [origin[i] + voxel * np.arange(n[i]) for i in range(3)]
         grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).astype(np.float32)
-        sd = scene.compute_signed_distance(o3d.core.Tensor(grid), nsamples=3).numpy()
+        # open3d's stubs make Tensor's dtype and device required; they are optional
+        sd = scene.compute_signed_distance(o3d.core.Tensor(grid), nsamples=3).numpy()  # type: ignore[call-overload]
         Vr, Fr = _marching_cubes_closed(-sd, origin, voxel)  # inside: sd < 0
         if len(Fr) <= max_faces:
             mesh = _clean_and_orient(trimesh.Trimesh(Vr, Fr, process=True))

@@ -52,8 +52,9 @@ def raycasting_scene(vertices_table: np.ndarray, faces: np.ndarray) -> o3d.t.geo
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.asarray(vertices_table).astype(np.float32)),
-                        o3d.core.Tensor(np.asarray(faces).astype(np.uint32)))
+    # open3d's stubs make Tensor's dtype and device required; they are optional
+    scene.add_triangles(o3d.core.Tensor(np.asarray(vertices_table).astype(np.float32)),  # type: ignore[call-overload]
+                        o3d.core.Tensor(np.asarray(faces).astype(np.uint32)))  # type: ignore[call-overload]
     return scene
 
 
@@ -65,7 +66,7 @@ def first_hits(scene: o3d.t.geometry.RaycastingScene, rays: np.ndarray) -> np.nd
     """
     import open3d as o3d
 
-    return scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    return scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()  # type: ignore[call-overload]  # as above
 
 
 def render_depth(vertices_table: np.ndarray, faces: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray,

@@ -130,7 +130,8 @@ def _region_labels(carved: np.ndarray, voxel_mm: float, region_mm: float) -> tup
     return out, int(lab.max()) + 1
 
 
-def _judge(labels, n, hull, meshes_vf, depths, masks, K, Ts, o: RegionOptions):
+def _judge(labels, n, hull, meshes_vf: tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]], depths,
+           masks, K, Ts, o: RegionOptions):
     """Per region (arrays of n + 1): summed hull error, summed fused error, judged pixels, see-through pixels.
 
     ``meshes_vf``: the hull's and the fused grid's meshes, each (vertices_table, faces).

@@ -69,6 +69,7 @@ import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -248,7 +249,7 @@ def _table_plate(rect: np.ndarray, seen: np.ndarray, T: np.ndarray, tau: float, 
     full = _median_frames(rect)
     lo_f, hi_f = plate_envelope(full)
     agree = np.mean([range_dist(r, lo_f, hi_f) < tau for r in rect], axis=0)
-    all_seen = seen.all(axis=0)
+    all_seen = cast(np.ndarray, seen.all(axis=0))  # numpy's stubs allow a scalar for axis=0
     # where (nearly) every view agrees nothing hid the point: the arcs are needed only elsewhere
     doubt = (bins < nb) & (agree < 0.95)
     plate = full.copy()
@@ -309,11 +310,11 @@ class _Plates:
         n = self.table.shape[0]
         M = np.array([[1.0, 0, -x0], [0, 1.0, -y0], [0, 0, 1.0]]) @ plane_homography(self.K, T) \
             @ _raster_to_table(n, _PLANE_PX_PER_MM)
-        warp = [cv2.warpPerspective(p, M, (w, h), flags=cv2.INTER_LINEAR, borderValue=0)
-                for p in (self.table, self.table_lo, self.table_hi)]
+        table, lo, hi = [cv2.warpPerspective(p, M, (w, h), flags=cv2.INTER_LINEAR, borderValue=0)
+                         for p in (self.table, self.table_lo, self.table_hi)]
         trust = cv2.warpPerspective(self.table_trust, M, (w, h), flags=cv2.INTER_NEAREST, borderValue=0) > 0
         trust &= _below_horizon(self.K, T, self.box, size_hw)
-        return Plate(*warp, trust, trust)
+        return Plate(table, lo, hi, trust, trust)
 
 
 def _plate_distances(img, room: Plate, table: Plate) -> tuple[np.ndarray, ...]:
@@ -398,7 +399,9 @@ def _grabcut(img, labels, iterations: int = 2) -> np.ndarray:
     # thread: unseeded, a frame's mask depended on which frames its worker thread had cut before.
     cv2.setRNGSeed(_GRABCUT_SEED)
     try:
-        cv2.grabCut(np.ascontiguousarray(small[..., ::-1]), lab, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
+        # OpenCV's stubs want a rect; None is accepted (and the rect unused) with GC_INIT_WITH_MASK
+        cv2.grabCut(np.ascontiguousarray(small[..., ::-1]), lab, None,  # type: ignore[call-overload]
+                    bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
     except cv2.error:  # a class without samples at this scale
         return fg.astype(np.float32)
     out = ((lab == cv2.GC_FGD) | (lab == cv2.GC_PR_FGD)).astype(np.float32)
@@ -592,7 +595,8 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
     V, H, W = imgs.shape[:3]
     if radius_mm is None and spec is None:
         raise ValueError("estimate_silhouettes: give the target spec or radius_mm")
-    radius = float(radius_mm) if radius_mm is not None else float(spec.extent_mm) + _MARGIN_MM
+    # spec is given when radius_mm is not (checked just above)
+    radius = float(radius_mm) if radius_mm is not None else float(spec.extent_mm) + _MARGIN_MM  # type: ignore[union-attr]
     height = float(height_mm) if height_mm is not None else largest_visible_height_mm(K, T, W, H)
     regions = [cylinder_region(K, t, (W, H), radius, height) for t in T]
     union = np.any(regions, axis=0)
@@ -616,7 +620,7 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
     region_px = np.array([r.sum() for r in regions], float)
 
     def run(verified: bool, report):
-        out = [None] * V
+        out: list[_FrameOut] = [None] * V  # type: ignore[list-item]  # one() sets every item
 
         def one(i: int) -> int:
             out[i] = _frame_mask(crops[i], regions_box[i], bases[i], plates, T[i], tau, verified)

@@ -279,15 +279,15 @@ def _sweep(ref: _Ref, neigh: list[tuple[np.ndarray, np.ndarray, np.ndarray]], z0
     vol = np.empty((n_samples, h, w), np.float32)
     for d in range(n_samples):
         z = z0 + np.float32(d) * dz
-        scores = []
+        view_scores = []
         for g, a, b in setups:
             wz = np.maximum(z * a[2] + b[2], np.float32(1e-6))  # > 0: the hull is in front of every camera
             mx = (z * a[0] + b[0]) / wz
             my = (z * a[1] + b[1]) / wz
             inside = (mx > 0) & (my > 0) & (mx < g.shape[1] - 1) & (my < g.shape[0] - 1)
             J = cv2.remap(g, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            scores.append(_ncc(ref, J, inside))
-        scores = np.stack(scores)
+            view_scores.append(_ncc(ref, J, inside))
+        scores = np.stack(view_scores)
         if k_best < len(scores):
             scores = -np.partition(-scores, k_best - 1, axis=0)[:k_best]
         vol[d] = scores.mean(axis=0)

@@ -135,7 +135,7 @@ def splat_depth(points: FusedPoints, K: np.ndarray, T_cam_table: np.ndarray, siz
     y = np.rint(uvw[ok, 1] / z[ok]).astype(np.intp)
     z = z[ok]
     inb = (x >= 0) & (y >= 0) & (x < w) & (y < h)
-    zbuf = np.full(h * w, np.inf)
+    zbuf: np.ndarray = np.full(h * w, np.inf)
     np.minimum.at(zbuf, y[inb] * w + x[inb], z[inb])
     zbuf = zbuf.reshape(h, w)
     for _ in range(fill_iters):
@@ -409,17 +409,18 @@ def compare_to_hull(hull_mesh_vf: tuple[np.ndarray, np.ndarray], fused_mesh_vf: 
     if len(depths) != len(Ts):
         raise ValueError(f"{len(depths)} depth maps but {len(Ts)} poses")
     Ks = np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(K, float)
-    e_h, e_f = [], []
+    parts_h: list[np.ndarray] = []
+    parts_f: list[np.ndarray] = []
     for dm, T in zip(depths, Ts, strict=True):
         d = np.where(dm.confidence >= min_confidence, dm.depth_mm, 0.0)[::stride, ::stride]
         size = (d.shape[1], d.shape[0])
         r_h = render_depth(*hull_mesh_vf, Ks, T, size)
         r_f = render_depth(*fused_mesh_vf, Ks, T, size)
         sel = (d > 0) & (np.abs(r_h - r_f) > delta_mm)
-        for out, r in ((e_h, r_h[sel]), (e_f, r_f[sel])):
+        for out, r in ((parts_h, r_h[sel]), (parts_f, r_f[sel])):
             out.append(np.where(r > 0, np.minimum(np.abs(r - d[sel]), cap_mm), cap_mm))
-    e_h = np.concatenate(e_h) if e_h else np.zeros(0)
-    e_f = np.concatenate(e_f) if e_f else np.zeros(0)
+    e_h = np.concatenate(parts_h) if parts_h else np.zeros(0)
+    e_f = np.concatenate(parts_f) if parts_f else np.zeros(0)
     if len(e_h) < min_pixels:
         return HullComparison(float(e_h.mean()) if len(e_h) else float("nan"),
                               float(e_f.mean()) if len(e_f) else float("nan"), int(len(e_h)), False)
