@@ -16,6 +16,7 @@ test: setup lint
 
 lint: setup
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/mypy calib recon
 
 bench: setup
 	for b in benchmarks/*.py; do $(PY) $$b || exit 1; done
