@@ -65,13 +65,13 @@ class Progress:
 
         On a terminal ``text`` replaces the stage's live line; otherwise nothing
         is written until ``done``, then one line: ``name: text (time)``. The
-        stage's time runs from its first call to the one with ``done``.
+        stage's time runs from its first call to the one with ``done``; it is printed, not kept in
+        ``times_s`` (a status stage is part of the counted stage around it).
         """
         now = time.perf_counter()
         t0 = self._started.setdefault(name, now)
         if done:
-            del self._started[name]
-            self.times_s[name] = self.times_s.get(name, 0.0) + now - t0
+            del self._started[name]  # a part of the stage around it: its time is that stage's, not listed apart
             end = f" ({now - t0:.1f} s)"
             self._write(f"\r  {name}: {text}{end}{' ' * 10}\n" if self.tty else f"  {name}: {text}{end}\n")
         elif self.tty:
