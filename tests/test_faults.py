@@ -259,8 +259,7 @@ def _wait_for_staging(out: Path, proc: subprocess.Popen, timeout: float = 60.0) 
 def test_sigterm_ends_the_run_like_ctrl_c(good, scene, tmp_path):
     out = _copy(good, tmp_path)
     p = _cli(*_args(scene, out, "--overwrite"))
-    _wait_for_staging(out, p)
-    time.sleep(0.5)
+    _wait_for_staging(out, p)  # created as the run starts, seconds before it can finish: mid-run for sure
     p.send_signal(signal.SIGTERM)
     _, err = p.communicate(timeout=30)
     assert p.returncode == 128 + signal.SIGTERM and "terminated" in err and "Traceback" not in err, err

@@ -163,9 +163,11 @@ class OutputFolder:
             self._check_room()
             self.staging.mkdir()
         except OSError as exc:
+            _remove(self.staging)
             self._lock.release()
             raise write_error(exc, self.out) from None
-        except BaseException:
+        except BaseException:  # Ctrl-C or SIGTERM right as the run starts
+            _remove(self.staging)
             self._lock.release()
             raise
         return self
