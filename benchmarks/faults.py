@@ -36,6 +36,10 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from turntable.outdir import leftovers  # noqa: E402
+
 PY = sys.executable
 
 
@@ -49,9 +53,8 @@ def _model(out: Path) -> dict[str, str]:
 
 
 def _leftovers(out: Path) -> list[str]:
-    meta = out / ".turntable"
-    left = list(meta.glob("staging.*")) + [p for p in (meta / "commit", meta / "trash") if p.exists()]
-    left += [p for p in out.glob(".*") if p.is_file()] + list(meta.glob(".*"))
+    """What a run left behind (turntable.outdir.leftovers), and any other hidden file in OUT or its cache."""
+    left = {*leftovers(out), *(p for p in out.glob(".*") if p.is_file()), *(out / ".turntable").glob(".*")}
     return sorted(str(p.relative_to(out)) for p in left)
 
 

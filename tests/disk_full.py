@@ -29,6 +29,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from turntable.outdir import leftovers
+
 FILLER = "filler.bin"
 
 
@@ -43,9 +45,8 @@ def _tree(root: Path) -> dict[str, str]:
 
 
 def _leftovers(out: Path) -> list[str]:
-    meta = out / ".turntable"
-    left = [p for p in meta.glob("staging.*")] + [p for p in (meta / "commit", meta / "trash") if p.exists()]
-    left += [p for p in out.rglob(".*") if p.is_file() and p.parent in (out, meta)]
+    """What a run left behind (turntable.outdir.leftovers), and any other hidden file in OUT or its cache."""
+    left = {*leftovers(out), *(p for p in out.glob(".*") if p.is_file()), *(out / ".turntable").glob(".*")}
     return sorted(str(p.relative_to(out)) for p in left)
 
 

@@ -26,7 +26,7 @@ import pytest
 
 from turntable.cli import main
 from turntable.errors import UserError
-from turntable.outdir import OutputFolder
+from turntable.outdir import OutputFolder, leftovers
 from turntable.synth import SynthOptions, make_sequence
 
 HERE = Path(__file__).parent
@@ -59,9 +59,8 @@ def _model(out: Path) -> dict[str, str]:
 
 
 def _leftovers(out: Path) -> list[str]:
-    meta = out / ".turntable"
-    left = list(meta.glob("staging.*")) + [p for p in (meta / "commit", meta / "trash") if p.exists()]
-    left += [p for p in out.glob(".*") if p.is_file()] + [p for p in meta.glob(".*")]
+    """What a run left behind (turntable.outdir.leftovers), and any other hidden file in OUT or its cache."""
+    left = {*leftovers(out), *(p for p in out.glob(".*") if p.is_file()), *(out / ".turntable").glob(".*")}
     return sorted(str(p.relative_to(out)) for p in left)
 
 

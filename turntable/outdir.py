@@ -38,7 +38,7 @@ from recon.fileio import atomic_write_bytes
 
 from .errors import UserError
 
-__all__ = ["OutputFolder", "KNOWN_OUTPUTS", "DISK_FULL_ERRNOS", "write_error"]
+__all__ = ["OutputFolder", "KNOWN_OUTPUTS", "DISK_FULL_ERRNOS", "leftovers", "write_error"]
 
 #: Everything ``reconstruct`` has ever published in OUT. Without a ``published.json`` (OUT written
 #: by an older version) these are the names a new run replaces or removes.
@@ -84,6 +84,20 @@ def _remove(p: Path) -> None:
         shutil.rmtree(p, ignore_errors=True)
     else:
         p.unlink(missing_ok=True)
+
+
+def leftovers(out: str | os.PathLike) -> list[Path]:
+    """What interrupted runs left in OUT: staging folders, a half-done switch (``commit/``,
+    ``trash/``), temporary files of atomic writes (ours and older versions'). Empty after any
+    run has started there (it removes them, or finishes the switch)."""
+    out = Path(out)
+    meta = out / ".turntable"
+    left = [p for p in (meta / "commit", meta / "trash") if p.exists()]
+    left += list(meta.glob("staging.*"))
+    left += [p for p in meta.glob(".*") if p.is_file()]  # atomic writes' temp files (cache)
+    left += list(out.glob(".recording.*.rrd"))  # older versions' recording temp files
+    left += [p for n in KNOWN_OUTPUTS for p in out.glob(f".{n}.*")]  # atomic writes' temp files (outputs)
+    return sorted(left)
 
 
 class _Lock:
@@ -250,11 +264,7 @@ class OutputFolder:
         if (self.meta / "commit").exists():
             self._roll_forward()
             self.cleaned.append("finished publishing an interrupted run's outputs")
-        _remove(self.meta / "trash")
-        left = [p for p in self.meta.glob("staging.*")]
-        left += [p for p in self.meta.glob(".*") if p.is_file()]  # atomic writes' temp files (cache)
-        left += [p for p in self.out.glob(".recording.*.rrd")]  # older versions' recording temp files
-        left += [p for n in KNOWN_OUTPUTS for p in self.out.glob(f".{n}.*")]  # older versions' temp files
+        left = leftovers(self.out)
         for p in left:
             _remove(p)
         if left:
