@@ -25,7 +25,6 @@ Usage: ``python benchmarks/faults.py [--keep DIR] [--quick]`` (``--quick``: 8 fr
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import shutil
 import signal
@@ -36,26 +35,11 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
-from turntable.outdir import leftovers  # noqa: E402
+from disk_full import model_digests, published_digests, run_leftovers, tmpfs_prefix  # noqa: E402
 
 PY = sys.executable
-
-
-def _published(out: Path) -> dict[str, str]:
-    return {str(p.relative_to(out)): hashlib.blake2b(p.read_bytes(), digest_size=16).hexdigest()
-            for p in sorted(out.rglob("*")) if p.is_file() and p.relative_to(out).parts[0] != ".turntable"}
-
-
-def _model(out: Path) -> dict[str, str]:
-    return {k: v for k, v in _published(out).items() if k.startswith("model.")}
-
-
-def _leftovers(out: Path) -> list[str]:
-    """What a run left behind (turntable.outdir.leftovers), and any other hidden file in OUT or its cache."""
-    left = {*leftovers(out), *(p for p in out.glob(".*") if p.is_file()), *(out / ".turntable").glob(".*")}
-    return sorted(str(p.relative_to(out)) for p in left)
 
 
 def _cmd(seq: Path, out: Path, *extra: str) -> list[str]:
@@ -94,7 +78,7 @@ def main() -> int:
         assert code == 0, code
     else:
         secs = json.loads((good / "summary.json").read_text())["time_s"]["total"]
-    ref = _published(good)
+    ref = published_digests(good)
     rows = []
 
     def copy(name: str) -> Path:
@@ -107,9 +91,7 @@ def main() -> int:
         rows.append((case, code, f"{seconds:.1f}", intact, model_same, ", ".join(left) or "none", said[:110]))
 
     # -- disk full
-    mount = next((p for p in ([], ["unshare", "-rm"]) if subprocess.run(
-        [*p, "sh", "-c", "d=$(mktemp -d) && mount -t tmpfs -o size=1m tmpfs $d && umount $d; r=$?; rmdir $d; exit $r"],
-        capture_output=True).returncode == 0), None)
+    mount = tmpfs_prefix()
     if mount is None:
         rows.append(("disk full", "skipped: cannot mount a tmpfs here", "", "", "", "", ""))
     else:
@@ -132,13 +114,14 @@ def main() -> int:
             time.sleep(f * secs)
             p.send_signal(sig)
             _, err = p.communicate()
-            intact = _published(out) == ref
-            whole = intact or _model(out) == _model(good)
+            intact = published_digests(out) == ref
+            whole = intact or model_digests(out) == model_digests(good)
             t0 = time.perf_counter()
             code, s2, said = _run(_cmd(seq, out))  # the user runs it again
-            row(f"{sig.name} at {f * secs:.0f} s, then re-run", f"{p.returncode} then {code}", time.perf_counter() - t0,
-                f"{'yes' if intact else 'new set, whole' if whole else 'NO'}", _model(out) == _model(good),
-                _leftovers(out), (err.strip().splitlines() or [""])[-1] if sig == signal.SIGTERM else said)
+            row(f"{sig.name} at {f * secs:.0f} s, then re-run", f"{p.returncode} then {code}",
+                time.perf_counter() - t0, f"{'yes' if intact else 'new set, whole' if whole else 'NO'}",
+                model_digests(out) == model_digests(good), run_leftovers(out),
+                (err.strip().splitlines() or [""])[-1] if sig == signal.SIGTERM else said)
 
     # -- two runs at once
     out = copy("two")
@@ -147,8 +130,8 @@ def main() -> int:
     time.sleep(2.0)
     code2, s2, said2 = _run(_cmd(seq, out, "--overwrite", "--max-faces", "5000"))
     _, err1 = p1.communicate()
-    row("two runs into one OUT", f"{p1.returncode} and {code2}", s2, "-", _model(out) == _model(good),
-        _leftovers(out), said2.replace(str(out), "OUT"))
+    row("two runs into one OUT", f"{p1.returncode} and {code2}", s2, "-", model_digests(out) == model_digests(good),
+        run_leftovers(out), said2.replace(str(out), "OUT"))
 
     # -- damaged cache files
     for name in ("silhouettes", "hull", "detections"):
@@ -164,7 +147,8 @@ def main() -> int:
                 data[len(data) // 3] ^= 0xFF
             f.write_bytes(bytes(data))
             code, s, said = _run(_cmd(seq, out))
-            row(f"cache {name}.npz {how}", code, s, "-", _model(out) == _model(good), _leftovers(out), said)
+            row(f"cache {name}.npz {how}", code, s, "-", model_digests(out) == model_digests(good), run_leftovers(out),
+                said)
             if a.quick:
                 break
 
@@ -186,7 +170,7 @@ def main() -> int:
     code, s, said = _run(_cmd(eseq, out))
     summary = json.loads((out / "summary.json").read_text())
     rows.append(("edited: a block of one frame's pixels", code, f"{s:.1f}", "-",
-                 f"volume {v0:.1f} -> {_volume(out):.1f} cm³", ", ".join(_leftovers(out)) or "none",
+                 f"volume {v0:.1f} -> {_volume(out):.1f} cm³", ", ".join(run_leftovers(out)) or "none",
                  "stages recomputed: " + ", ".join(k for k in summary["time_s"] if k not in ("total", "recording"))))
 
     print(f"\nfaults: {frames} frames 640x480, automatic cameras and silhouettes, fusion; one clean run {secs:.0f} s\n")

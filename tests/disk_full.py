@@ -34,20 +34,35 @@ from turntable.outdir import leftovers
 FILLER = "filler.bin"
 
 
-def _tree(root: Path) -> dict[str, str]:
-    """Relative path -> BLAKE2b of every published file under ``root`` (the stage cache left out)."""
-    out = {}
-    for p in sorted(root.rglob("*")):
-        rel = p.relative_to(root)
-        if p.is_file() and rel.parts[0] != ".turntable":
-            out[str(rel)] = hashlib.blake2b(p.read_bytes(), digest_size=16).hexdigest()
-    return out
+def published_digests(out: Path) -> dict[str, str]:
+    """Relative path -> BLAKE2b of every published file in OUT (the stage cache left out)."""
+    return {str(p.relative_to(out)): hashlib.blake2b(p.read_bytes(), digest_size=16).hexdigest()
+            for p in sorted(out.rglob("*")) if p.is_file() and p.relative_to(out).parts[0] != ".turntable"}
 
 
-def _leftovers(out: Path) -> list[str]:
+def model_digests(out: Path) -> dict[str, str]:
+    """:func:`published_digests` of the model files only (model.glb, .ply, .obj)."""
+    return {k: v for k, v in published_digests(out).items() if k.startswith("model.")}
+
+
+def run_leftovers(out: Path) -> list[str]:
     """What a run left behind (turntable.outdir.leftovers), and any other hidden file in OUT or its cache."""
     left = {*leftovers(out), *(p for p in out.glob(".*") if p.is_file()), *(out / ".turntable").glob(".*")}
     return sorted(str(p.relative_to(out)) for p in left)
+
+
+def tmpfs_prefix() -> list[str] | None:
+    """The command prefix under which ``mount -t tmpfs`` works here: [] (root), ["unshare", "-rm"], or None."""
+    probe = "d=$(mktemp -d) && mount -t tmpfs -o size=1m tmpfs $d && umount $d; r=$?; rmdir $d; exit $r"
+    for prefix in ([], ["unshare", "-rm"]):
+        if prefix and shutil.which("unshare") is None:
+            continue
+        try:
+            if subprocess.run([*prefix, "sh", "-c", probe], capture_output=True, timeout=20).returncode == 0:
+                return prefix
+        except (OSError, subprocess.SubprocessError):
+            pass
+    return None
 
 
 def _mount_tmpfs(where: Path, size: int) -> bool:
@@ -74,7 +89,7 @@ def main(argv: list[str]) -> int:
     argv = argv[force_rlimit:]
     good, budgets, args = Path(argv[0]), json.loads(argv[1]), argv[3:]
     i = args.index("--out")
-    before = _tree(good)
+    before = published_digests(good)
     size = sum(p.stat().st_size for p in good.rglob("*") if p.is_file())
     results, mode = [], None
     for budget in budgets:
@@ -98,7 +113,7 @@ def main(argv: list[str]) -> int:
             code, err = "timeout", (exc.stderr or b"").decode(errors="replace") if isinstance(exc.stderr, bytes) \
                 else (exc.stderr or "")
         seconds = time.perf_counter() - t0
-        after = _tree(out)
+        after = published_digests(out)
         published = json.loads((out / ".turntable" / "published.json").read_text())["files"] \
             if (out / ".turntable" / "published.json").is_file() else None
         results.append({
@@ -108,7 +123,7 @@ def main(argv: list[str]) -> int:
             "new_set_whole": published is not None and sorted(after) == sorted(
                 str(p.relative_to(out)) for n in published for p in
                 ([out / n] if (out / n).is_file() else (out / n).rglob("*")) if p.is_file()),
-            "leftovers": _leftovers(out),
+            "leftovers": run_leftovers(out),
         })
         if mounted:
             subprocess.run(["umount", str(disk)], capture_output=True)

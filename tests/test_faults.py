@@ -11,7 +11,6 @@ calibration and silhouettes, fusion).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -23,10 +22,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from disk_full import model_digests, published_digests, run_leftovers, tmpfs_prefix
 
 from turntable.cli import main
 from turntable.errors import UserError
-from turntable.outdir import OutputFolder, leftovers
+from turntable.outdir import OutputFolder
 from turntable.synth import SynthOptions, make_sequence
 
 HERE = Path(__file__).parent
@@ -48,28 +48,12 @@ def _args(scene: Path, out: Path, *extra: str) -> list[str]:
             "--no-fusion", "--quiet", *extra]
 
 
-def _published(out: Path) -> dict[str, str]:
-    """Relative path -> hash of every file in OUT outside the stage cache."""
-    return {str(p.relative_to(out)): hashlib.blake2b(p.read_bytes(), digest_size=16).hexdigest()
-            for p in sorted(out.rglob("*")) if p.is_file() and p.relative_to(out).parts[0] != ".turntable"}
-
-
-def _model(out: Path) -> dict[str, str]:
-    return {k: v for k, v in _published(out).items() if k.startswith("model.")}
-
-
-def _leftovers(out: Path) -> list[str]:
-    """What a run left behind (turntable.outdir.leftovers), and any other hidden file in OUT or its cache."""
-    left = {*leftovers(out), *(p for p in out.glob(".*") if p.is_file()), *(out / ".turntable").glob(".*")}
-    return sorted(str(p.relative_to(out)) for p in left)
-
-
 @pytest.fixture(scope="module")
 def good(scene, tmp_path_factory):
     """A finished OUT (exit 0) and its published files' hashes."""
     out = tmp_path_factory.mktemp("good") / "scan"
     assert main(_args(scene, out)) == 0
-    return out, _published(out)
+    return out, published_digests(out)
 
 
 def _copy(good, tmp_path) -> Path:
@@ -113,7 +97,7 @@ def test_publish_replaces_the_whole_set_and_removes_what_the_new_run_does_not_wr
     (out / "my notes.txt").write_text("the user's")  # not ours: never touched
     _publish(out, NEW)
     assert _contents(out) == {**NEW, "my notes.txt": "the user's"}
-    assert _leftovers(out) == []
+    assert run_leftovers(out) == []
     assert json.loads((out / ".turntable" / "published.json").read_text())["files"] == sorted(NEW)
 
 
@@ -126,7 +110,7 @@ def test_an_output_folder_of_an_older_version_has_its_known_files_replaced(tmp_p
     (out / ".model.glb.x1y2.tmp").write_text("orphan of an atomic write")
     _publish(out, NEW)
     assert _contents(out) == {**NEW, "my notes.txt": "the user's"}
-    assert _leftovers(out) == []
+    assert run_leftovers(out) == []
 
 
 def test_leaving_without_publishing_changes_nothing(tmp_path):
@@ -135,7 +119,7 @@ def test_leaving_without_publishing_changes_nothing(tmp_path):
     with pytest.raises(RuntimeError), OutputFolder(out) as folder:
         _stage(folder, NEW)
         raise RuntimeError("a stage failed")
-    assert _contents(out) == OLD and _leftovers(out) == []
+    assert _contents(out) == OLD and run_leftovers(out) == []
 
 
 class _Killed(BaseException):
@@ -186,7 +170,7 @@ def test_a_run_killed_at_any_step_of_the_switch_leaves_one_whole_set(tmp_path, m
             pass
         assert _contents(out) in (OLD, NEW), (k, _contents(out))
         assert _contents(out) == (NEW if k >= 2 else OLD), k  # committed once the staging folder was renamed
-        assert _leftovers(out) == [], k
+        assert run_leftovers(out) == [], k
         assert again.cleaned, k  # the killed run's traces were found and cleared (and said so)
 
 
@@ -211,7 +195,7 @@ def test_a_killed_holder_s_lock_and_staging_folder_do_not_outlive_it(tmp_path):
     assert list((out / ".turntable").glob("staging.*"))
     with OutputFolder(out) as folder:
         assert folder.cleaned
-    assert _leftovers(out) == [] and _contents(out) == {}
+    assert run_leftovers(out) == [] and _contents(out) == {}
 
 
 # --------------------------------------------------------------------------- whole runs
@@ -225,7 +209,7 @@ def test_a_failed_run_leaves_the_previous_output_as_it_was(good, tmp_path, capsy
         cv2.imwrite(str(blank / f"f{i}.png"), np.full((240, 320, 3), 90 + i, np.uint8))
     code = main(["reconstruct", str(blank), "--r-outer", "80", "--r-inner", "50", "--out", str(out), "--quiet"])
     assert code == 2 and "no ring" in capsys.readouterr().err
-    assert _published(out) == good[1] and _leftovers(out) == []
+    assert published_digests(out) == good[1] and run_leftovers(out) == []
 
 
 def test_exports_a_re_run_does_not_ask_for_are_removed(scene, tmp_path):
@@ -235,7 +219,7 @@ def test_exports_a_re_run_does_not_ask_for_are_removed(scene, tmp_path):
     assert main(_args(scene, out)) == 0
     assert not (out / "colmap").exists() and not (out / "transforms.json").exists()
     summary = json.loads((out / "summary.json").read_text())
-    assert sorted(Path(p).name for p in summary["files"].values()) == sorted(_published(out))
+    assert sorted(Path(p).name for p in summary["files"].values()) == sorted(published_digests(out))
 
 
 def test_a_concurrent_run_is_refused_and_changes_nothing(good, scene, tmp_path, capsys):
@@ -244,7 +228,7 @@ def test_a_concurrent_run_is_refused_and_changes_nothing(good, scene, tmp_path, 
         code = main(_args(scene, out, "--overwrite"))
     err = capsys.readouterr().err
     assert code == 2 and f"is in use by pid {os.getpid()}" in err and "Traceback" not in err
-    assert _published(out) == good[1]
+    assert published_digests(out) == good[1]
 
 
 def _wait_for_staging(out: Path, proc: subprocess.Popen, timeout: float = 60.0) -> None:
@@ -262,7 +246,7 @@ def test_sigterm_ends_the_run_like_ctrl_c(good, scene, tmp_path):
     p.send_signal(signal.SIGTERM)
     _, err = p.communicate(timeout=30)
     assert p.returncode == 128 + signal.SIGTERM and "terminated" in err and "Traceback" not in err, err
-    assert _published(out) == good[1] and _leftovers(out) == []
+    assert published_digests(out) == good[1] and run_leftovers(out) == []
 
 
 @pytest.mark.parametrize("fraction", [0.15, 0.5, 0.85])
@@ -276,24 +260,10 @@ def test_sigkill_at_any_point_then_a_re_run_gives_the_same_model(good, scene, tm
     time.sleep(fraction * full)
     p.kill()
     p.wait()
-    before = _published(out)
-    assert before == good[1] or _model(out) == _model(good[0])  # whole old set, or a finished new one
+    before = published_digests(out)
+    assert before == good[1] or model_digests(out) == model_digests(good[0])  # whole old set, or a finished new one
     assert main(_args(scene, out)) == 0
-    assert _model(out) == _model(good[0]) and _leftovers(out) == []
-
-
-def _can_mount_tmpfs() -> list[str] | None:
-    """The command prefix under which ``mount -t tmpfs`` works here (None: nowhere)."""
-    probe = "d=$(mktemp -d) && mount -t tmpfs -o size=1m tmpfs $d && umount $d; r=$?; rmdir $d; exit $r"
-    for prefix in ([], ["unshare", "-rm"]):
-        if prefix and shutil.which("unshare") is None:
-            continue
-        try:
-            if subprocess.run([*prefix, "sh", "-c", probe], capture_output=True, timeout=20).returncode == 0:
-                return prefix
-        except (OSError, subprocess.SubprocessError):
-            pass
-    return None
+    assert model_digests(out) == model_digests(good[0]) and run_leftovers(out) == []
 
 
 def test_a_full_disk_at_any_stage_fails_fast_naming_the_file_and_keeps_the_previous_output(good, scene):
@@ -302,7 +272,7 @@ def test_a_full_disk_at_any_stage_fails_fast_naming_the_file_and_keeps_the_previ
     A tmpfs that is really full where this machine lets a test mount one, otherwise files limited in size
     (RLIMIT_FSIZE), which fail the same write calls (EFBIG instead of ENOSPC).
     """
-    prefix = _can_mount_tmpfs()
+    prefix = tmpfs_prefix()
     sizes = sorted(p.stat().st_size for p in good[0].rglob("*") if p.is_file() and ".turntable" not in p.parts)
     if prefix is None:
         budgets = [0, 1000, sizes[len(sizes) // 2], sizes[-1] - 1]  # per file
