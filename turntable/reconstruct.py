@@ -35,9 +35,11 @@ from .errors import UserError
 from .frames import Frame
 from .outdir import DISK_FULL_ERRNOS, OutputFolder, write_error
 from .progress import Progress
+from .recording import record_reconstruction
 from .stages import cameras, export, silhouettes
 from .stages import frames as frames_stage
 from .stages import hull as hull_stage
+from .stages import summary as summary_stage
 from .stages.cache import StageCache, file_digest, files_digest, stage_key
 from .stages.options import MIN_VIEWS, ReconstructOptions
 from .stages.silhouettes import GREY  # noqa: F401  (kept importable from here)
@@ -179,15 +181,16 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
     from recon.meshing import mesh_stats
 
     stats = mesh_stats(mesh)
-    failed = export.failed_checks(stats, carved.report)
+    failed = summary_stage.failed_checks(stats, carved.report)
     files = export.write_outputs(staging, opts, seq, names, mesh, fused, progress)
     if recorder is not None:
         with progress.stage("recording"):
-            export.record(recorder, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh, conics, ws)
+            record_reconstruction(recorder, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh,
+                                  conics, ws)
             files["recording"] = recorder.save(staging / "recording.rrd")
     files = {k: out / p.relative_to(staging) for k, p in files.items()}  # where they will be once published
     files["summary"] = out / "summary.json"
-    summary = export.summary(seq, names, skipped, mesh, progress, fusion_note, files)
+    summary = summary_stage.summary(seq, names, skipped, mesh, progress, fusion_note, files)
     summary["mesh"]["pieces"] = stats.n_bodies
     summary["working_volume"] = carved.report
     summary["silhouettes"] = {"rejected": rejected, "conservative": conservative}

@@ -27,7 +27,7 @@ import numpy as np
 from calib.camera import circle_points_table, invert_T
 from calib.conics import conic_to_ellipse, ellipse_points
 
-__all__ = ["Recorder"]
+__all__ = ["Recorder", "record_reconstruction"]
 
 
 class Recorder:
@@ -151,3 +151,20 @@ class Recorder:
             self.save(self.path)
         else:
             self.close()
+
+
+def record_reconstruction(rec: Recorder, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh, conics,
+                          ws) -> None:
+    """The recording shows the work images with their camera ``K`` and the rings mapped onto them."""
+    if opts.spec is not None:
+        rec.log_target(opts.spec.r_outer_mm, opts.spec.r_inner_mm)
+    W, H = ws.work
+    for i, n in enumerate(names):
+        rec.log_camera(i, K, W, H, Ts[i], image_rgb=images_rgb[i])
+        if n in conics:
+            rec.log_conics(i, {k: ws.conic(C) for k, C in conics[n].items()})
+        rec.log_silhouette(i, masks[i])
+    rec.log_mesh("hull", hull_mesh.vertices_table, hull_mesh.faces, hull_mesh.normals_table)
+    if fused is not None and len(fused.pts_table):
+        rec.log_points("points", fused.pts_table, fused.colors_rgb)
+    rec.log_mesh("mesh", mesh.vertices_table, mesh.faces, mesh.normals_table, mesh.colors_rgb)

@@ -2,25 +2,11 @@
 
 from __future__ import annotations
 
-import math
 import os
 from pathlib import Path
 
-import numpy as np
-
 from ..cameras_io import write_cameras
 from .frames import frame_files
-
-
-def failed_checks(stats, vol_report: dict) -> list[str]:
-    """What is wrong with the finished model, one line each (empty: it passed)."""
-    failed = []
-    if not stats.watertight:
-        failed.append("the mesh is not watertight")
-    if stats.n_bodies != 1:
-        failed.append(f"the mesh is {stats.n_bodies} separate pieces, not one")
-    failed += vol_report["clipped"]
-    return failed
 
 
 def write_outputs(staging: Path, opts, seq, names, mesh, fused, progress) -> dict[str, Path]:
@@ -58,50 +44,3 @@ def write_outputs(staging: Path, opts, seq, names, mesh, fused, progress) -> dic
             files["nerfstudio"] = export_nerfstudio(intr.K, intr.width, intr.height, rel, out, dist=intr.dist,
                                                     ply_file_path="model.ply")
     return files
-
-
-def summary(seq, names, skipped, mesh, progress, fusion_note, files) -> dict:
-    import trimesh
-
-    from ..frames import frame_name
-
-    tm = trimesh.Trimesh(mesh.vertices_table, mesh.faces, process=False)
-    meta = seq.meta
-    std_f = meta.get("focal_std_px")
-
-    def num(x):
-        return None if x is None or (isinstance(x, float) and math.isnan(x)) else x
-
-    rms = [fp.rms_px for fp in seq.frames if fp.ok and not math.isnan(fp.rms_px)]
-    return {
-        "frames_used": len(names),
-        "frames_skipped": skipped,
-        "focal_px": seq.intrinsics.focal_px,
-        "focal_std_px": num(std_f),
-        "principal_point_px": seq.intrinsics.principal_point_px.tolist(),
-        "mode": seq.mode,
-        "rms_px": float(np.sqrt(np.mean(np.square(rms)))) if rms else None,
-        "mesh": {"vertices": int(len(tm.vertices)), "faces": int(len(tm.faces)),
-                 "watertight": bool(tm.is_watertight), "volume_cm3": float(tm.volume) / 1000.0,
-                 "extent_mm": (tm.bounds[1] - tm.bounds[0]).tolist()},
-        "fusion": fusion_note,
-        "warnings": list(meta.get("warnings", [])),
-        "time_s": {k: round(v, 2) for k, v in progress.times_s.items()},
-        "files": {k: frame_name(str(v)) for k, v in files.items()},  # strict JSON whatever the path
-    }
-
-
-def record(rec, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh, conics, ws) -> None:
-    """The recording shows the work images with their camera ``K`` and the rings mapped onto them."""
-    if opts.spec is not None:
-        rec.log_target(opts.spec.r_outer_mm, opts.spec.r_inner_mm)
-    W, H = ws.work
-    for i, n in enumerate(names):
-        rec.log_camera(i, K, W, H, Ts[i], image_rgb=images_rgb[i])
-        if n in conics:
-            rec.log_conics(i, {k: ws.conic(C) for k, C in conics[n].items()})
-        rec.log_silhouette(i, masks[i])
-    rec.log_mesh("hull", hull_mesh.vertices_table, hull_mesh.faces, hull_mesh.normals_table)
-    if fused is not None and len(fused.pts_table):
-        rec.log_points("points", fused.pts_table, fused.colors_rgb)
-    rec.log_mesh("mesh", mesh.vertices_table, mesh.faces, mesh.normals_table, mesh.colors_rgb)
