@@ -42,7 +42,9 @@ fit), with ``D = X - t``, ``D^ = D / rho``, ``k = (D^ . q) / (n . q)``::
 ``T_cam_table`` and the stroke only, so a multi-view joint refinement (shared
 ``K``, one pose per frame) can stack them; :func:`refine_view` adds the
 single-view parameter packing ``[f, a1, a2, t (3), w, delta]`` with the normal
-``n = N(n0 + a1 e1 + a2 e2)`` (``e1, e2`` an orthonormal tangent basis at ``n0``).
+``n = N(n0 + a1 e1 + a2 e2)`` (``e1, e2`` an orthonormal tangent basis at ``n0``),
+solved by :func:`calib.lm.levenberg_marquardt` on the dense normal equations
+(:class:`calib.lm.DenseSystem`), the tangent origin re-based at every accepted step.
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .camera import make_T, rotation_from_normal
+from .lm import DenseSystem, dense_covariance, levenberg_marquardt
 from .types import CalibrationError, CalibrationStd, EdgePoints
 
 __all__ = [
@@ -308,52 +311,32 @@ class _Problem:
         return np.hstack(cols)
 
 
-def _cost(e, c):
-    """soft_l1 cost ``2 c^2 (sqrt(1 + (e/c)^2) - 1)`` (c > 0) or ``e^2`` (c None)."""
-    if c is None:
-        return float(e @ e)
-    return float(2.0 * c * c * np.sum(np.sqrt(1.0 + (e / c) ** 2) - 1.0))
+class _Scaled:
+    """:class:`calib.lm.LeastSquaresProblem` of a :class:`_Problem` in scaled parameters ``x = p / scale``.
 
-
-def _levenberg_marquardt(prob: _Problem, p, scale, c=None, max_iter=30, tol=1e-10, rel_gain=1e-9):
-    """Damped Gauss-Newton on the (robust) cost; soft_l1 by reweighting.
-
-    Seven parameters and a few thousand rows: the normal equations are formed
-    directly (``scale`` makes them well conditioned), which is ~10x faster
-    than ``scipy.optimize.least_squares``' per-iteration SVD and immune to
-    BLAS thread oversubscription on busy machines.
+    ``scale`` (p,) gives every column of the Jacobian a comparable size, so the
+    normal equations are well conditioned; ``accept`` re-bases the normal.
     """
-    p = prob.rebased(p)
-    L = prob.lin(p)
-    cost = _cost(L.residual_px, c)
-    lam = 1e-6
-    for _ in range(max_iter):
-        e = L.residual_px
-        J = prob.jac(L) * scale
-        w = np.ones_like(e) if c is None else 1.0 / np.sqrt(1.0 + (e / c) ** 2)
-        A = J.T @ (w[:, None] * J)
-        g = J.T @ (w * e)
-        D = np.diag(np.diag(A)) + 1e-12 * np.eye(len(p))
-        while True:
-            step = -np.linalg.solve(A + lam * D, g)
-            predicted = -(2.0 * g @ step + step @ A @ step)  # Gauss-Newton decrease of sum w e^2
-            if predicted <= rel_gain * cost or np.max(np.abs(step)) < tol:
-                return p  # converged: nothing left to gain
-            p_new = p + step * scale
-            e_new = prob.residual(p_new)
-            cost_new = _cost(e_new, c) if np.all(np.isfinite(e_new)) else np.inf
-            if cost_new < cost:
-                lam = max(lam / 10.0, 1e-9)
-                break
-            if cost_new - cost <= 1e-9 * cost:
-                return p  # at the minimum, to rounding
-            lam *= 10.0
-            if lam > 1e8:
-                return p
-        p = prob.rebased(p_new)
-        cost = cost_new
-        L = prob.lin(p)
-    return p
+
+    def __init__(self, prob: _Problem, scale: np.ndarray):
+        self.prob, self.scale = prob, scale
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        return self.prob.residual(x * self.scale)
+
+    def normal_equations(self, x: np.ndarray, r: np.ndarray, weights: np.ndarray) -> DenseSystem:
+        L = self.prob.lin(x * self.scale)
+        return DenseSystem.from_jacobian(self.prob.jac(L) * self.scale, L.residual_px, weights)
+
+    def accept(self, x: np.ndarray) -> np.ndarray:
+        return self.prob.rebased(x * self.scale) / self.scale
+
+
+def _solve(prob: _Problem, p: np.ndarray, scale: np.ndarray, loss_scale: float | None,
+           rtol: float = 1e-9) -> np.ndarray:
+    """:func:`calib.lm.levenberg_marquardt` on the single view from ``p``; the solution in ``p``'s units."""
+    fit = levenberg_marquardt(_Scaled(prob, scale), p / scale, loss_scale=loss_scale, rtol=rtol, max_iter=30)
+    return fit.x * scale
 
 
 def refine_view(
@@ -401,7 +384,7 @@ def refine_view(
     tn = np.linalg.norm(T0[:3, 3])
     scale = np.concatenate([[0.01 * f0, 0.01, 0.01], np.full(3, 0.01 * tn), [0.1, 0.1] if fit_w else []])
     prob.freeze_weights(p)
-    p = _levenberg_marquardt(prob, p, scale, c=ROBUST_SCALE_PX, rel_gain=1e-5)  # L2 stage polishes
+    p = _solve(prob, p, scale, ROBUST_SCALE_PX, rtol=1e-5)  # the L2 stage polishes
     prob.inv_g = None
     e = prob.residual(p)
     sigma = 1.4826 * np.median(np.abs(e))
@@ -411,7 +394,7 @@ def refine_view(
     prob = _Problem(uv[keep], R[keep], side[keep], cx, cy, prob.n0, float(stroke_mm), fit_w)
     for _ in range(2):  # weights frozen per pass: cost and gradient agree exactly
         prob.freeze_weights(p)
-        p = _levenberg_marquardt(prob, p, scale, c=None)
+        p = _solve(prob, p, scale, None)
     prob.inv_g = None
     L = prob.lin(p)
     if not np.all(np.isfinite(L.residual_px)):
@@ -420,13 +403,10 @@ def refine_view(
 
 
 def _result(prob: _Problem, p, e, J) -> RefineResult:
-    """Estimate and 1-sigma from ``s^2 (J^T J)^{-1}`` (``J`` taken at ``a = 0``)."""
-    dof = max(len(e) - len(p), 1)
-    s2 = float(e @ e) / dof
-    try:
-        cov = s2 * np.linalg.inv(J.T @ J)
-    except np.linalg.LinAlgError:
-        cov = np.full((len(p), len(p)), np.nan)
+    """Estimate and 1-sigma from ``s^2 (J^T J)^{-1}`` (:func:`calib.lm.dense_covariance`; ``J`` taken at
+    ``a = 0``)."""
+    s2 = float(np.sum(e * e)) / max(len(e) - len(p), 1)
+    cov = dense_covariance(J, s2)
     sd = np.sqrt(np.abs(np.diag(cov)))
     f, n, t, w, delta = prob.unpack(p)
     if n @ t > 0:

@@ -14,8 +14,8 @@ Residuals: each edge point's distance (pixels) from its projected edge circle,
 ``K, dist`` (:func:`calib.distortion.undistort_px`), all frames' points in one
 vectorised pass (each point with its frame's plane); for a turntable, one row per
 frame whose marks were read: the yaw between the model's pose and the marks'
-pose, scaled to pixels by ``noise_px / std``. Solved by Levenberg-Marquardt on
-the normal equations, which are block sparse: a frame's rows (its edge points
+pose, scaled to pixels by ``noise_px / std``. Solved by Levenberg-Marquardt
+(:func:`calib.lm.levenberg_marquardt`) on the normal equations, which are block sparse: a frame's rows (its edge points
 and its mark row) touch the ``g`` global parameters and its own ``l`` (0, 1 or
 5) only, so with ``J_k = [G_k | L_k]``::
 
@@ -39,10 +39,14 @@ import numpy as np
 
 from .camera import make_T
 from .distortion import undistort_px
+from .lm import LMIteration, dense_covariance, levenberg_marquardt
 from .refine import _geometry
 from .types import CalibrationError, TargetObservation
 
 __all__ = ["rot_y", "FitStep"]
+
+#: soft-L1 scale (px) of the robust stage of the joint fit
+ROBUST_SCALE_PX = 1.0
 
 
 # --------------------------------------------------------------------------- small geometry
@@ -314,6 +318,14 @@ class _Problem:
             J.local[rows, c] = (r[rows] - r0[rows]) / h[np.concatenate([self.row_frame, self.mark_frames])[rows]]
         return J
 
+    # -- calib.lm.LeastSquaresProblem ------------------------------------------
+    def normal_equations(self, x: np.ndarray, r: np.ndarray, weights: np.ndarray) -> _BlockSystem:
+        """The blocked ``J^T W J``, ``J^T W r`` at ``x`` (forward-difference Jacobian), row weights ``weights``."""
+        return _BlockSystem(_normal_equations(self, self.jacobian(x), np.sqrt(weights), r))
+
+    def accept(self, x: np.ndarray) -> np.ndarray:
+        return x
+
     def edge_rms_per_frame(self, r: np.ndarray) -> np.ndarray:
         return np.array([np.sqrt(np.mean(r[self.row_start[k]:self.row_start[k + 1]] ** 2))
                          for k in range(len(self.frames))])
@@ -432,84 +444,42 @@ class _Fit:
     problem: _Problem
 
 
-def _lm_step(problem: _Problem, N: _Normal, lam: float) -> np.ndarray:
-    """``-(A + lam diag(D))^-1 g`` for the blocked ``A = J^T J``, ``g = J^T r``; D = diag(A) floored."""
-    dg, dl = N.diagonal()
-    floor = 1e-12 * max(float(np.max(dg, initial=0.0)), float(np.max(dl, initial=0.0)), 1e-300)
-    x_g, x_l = _schur_solve(N, lam * np.maximum(dg, floor), lam * np.maximum(dl, floor))
-    return -np.concatenate([x_g, x_l[~N.pad]])
+@dataclass(frozen=True)
+class _BlockSystem:
+    """:class:`calib.lm.LinearSystem` of the blocked normal equations: flat vectors in parameter order
+    (globals, then each frame's locals), solved by :func:`_schur_solve`."""
 
+    N: _Normal
 
-def _levenberg_marquardt(problem: _Problem, x0: np.ndarray, robust_px: float | None, max_iter: int = 40,
-                         report: FitReport | None = None, stage: str = "") -> np.ndarray:
-    """Minimise ``sum rho(r_i^2)`` by Levenberg-Marquardt on the blocked normal equations.
+    @property
+    def gradient(self) -> np.ndarray:
+        return np.concatenate([self.N.b_g, self.N.b_l[~self.N.pad]])
 
-    ``robust_px``: soft-L1 loss of that scale (iteratively reweighted), else
-    L2. ``report``: told the cost at the start and after every iteration.
-    """
+    def diagonal(self) -> np.ndarray:
+        dg, dl = self.N.diagonal()
+        return np.concatenate([dg, dl[~self.N.pad]])
 
-    def cost_of(r):
-        if robust_px is None:
-            return _sum_sq(r)
-        z = (r / robust_px) ** 2
-        return float(np.sum(2.0 * (np.sqrt(1.0 + z) - 1.0))) * robust_px**2
-
-    def tell(it, c, done=False):
-        if report is not None:
-            report(FitStep(stage, it, c, math.sqrt(c / max(problem.n_rows, 1)), done))
-
-    x = x0.copy()
-    r = problem.residuals(x)
-    cost = cost_of(r)
-    lam = 1e-3
-    tell(0, cost)
-    steps = 0
-    for _ in range(max_iter):
-        J = problem.jacobian(x)
-        w = np.ones_like(r) if robust_px is None else 1.0 / np.sqrt(np.sqrt(1.0 + (r / robust_px) ** 2))
-        N = _normal_equations(problem, J, w, r)
-        improved = False
-        for _ in range(12):
-            try:
-                dx = _lm_step(problem, N, lam)
-            except np.linalg.LinAlgError:
-                lam *= 10.0
-                continue
-            r_new = problem.residuals(x + dx)
-            c_new = cost_of(r_new)
-            if c_new < cost:
-                improved = True
-                break
-            lam *= 10.0
-        if not improved:
-            break
-        rel = (cost - c_new) / max(cost, 1e-300)
-        x, r, cost = x + dx, r_new, c_new
-        lam = max(lam / 10.0, 1e-9)
-        steps += 1
-        tell(steps, cost)
-        if rel < 1e-9:
-            break
-    tell(steps, cost, done=True)
-    return x
-
-
-def _sum_sq(r: np.ndarray) -> float:
-    """``sum(r**2)`` by numpy's own pairwise sum: ``r @ r`` is BLAS's ddot, which splits a long vector
-    over its threads, so the sum (and every std derived from it) depended on their number."""
-    return float(np.sum(r * r))
+    def solve(self, damping: np.ndarray) -> np.ndarray:
+        g = len(self.N.b_g)
+        d_l = np.zeros(self.N.pad.shape)
+        d_l[~self.N.pad] = damping[g:]
+        x_g, x_l = _schur_solve(self.N, damping[:g], d_l)
+        return np.concatenate([x_g, x_l[~self.N.pad]])
 
 
 def _solve(problem: _Problem, robust: bool, report: FitReport | None = None, stage: str = "") -> _Fit:
-    x0 = np.zeros(problem.n_params)
     label = f"{stage}, robust" if robust and stage else stage
-    x = _levenberg_marquardt(problem, x0, 1.0 if robust else None, report=report, stage=label)
-    r = problem.residuals(x)
+
+    def tell(it: LMIteration) -> None:
+        if report is not None:
+            report(FitStep(label, it.iteration, it.cost, math.sqrt(it.cost / max(it.rows, 1)), it.done))
+
+    sol = levenberg_marquardt(problem, np.zeros(problem.n_params), loss_scale=ROBUST_SCALE_PX if robust else None,
+                              rtol=1e-9, max_iter=40, report=tell)
+    x, r = sol.x, sol.residuals
     J = problem.jacobian(x)
     n_e = int(problem.row_start[-1])
-    dof = max(len(r) - problem.n_params, 1)
-    s2 = _sum_sq(r) / dof
-    std = _global_std(problem, J, s2)
+    std = _global_std(problem, J, sol.sigma2)
     names = list(problem.free_intr) + (["stroke"] if problem.free_stroke else [])
     st = problem.unpack(x)
     out = {}
@@ -573,19 +543,8 @@ def _dense(problem: _Problem, J: _BlockJacobian) -> np.ndarray:
 
 
 def _param_std(J: np.ndarray, s2: float) -> np.ndarray:
-    """1-sigma of each parameter from ``s2 (J^T J)^-1`` for a dense ``J``; inf where singular."""
-    norms = np.linalg.norm(J, axis=0)
-    norms[norms == 0] = 1.0
-    Js = J / norms
-    M = np.einsum("ij,ik->jk", Js, Js, optimize=False)
-    try:
-        w, V = np.linalg.eigh(M)
-    except np.linalg.LinAlgError:
-        return np.full(J.shape[1], np.inf)
-    if w[0] <= w[-1] * 1e-14:
-        w = np.where(w <= w[-1] * 1e-14, w[-1] * 1e-14, w)
-    cov_s = (V / w) @ V.T
-    return np.sqrt(np.maximum(np.diag(cov_s), 0.0) * s2) / norms
+    """1-sigma of each parameter from ``s2 (J^T J)^-1`` for a dense ``J`` (:func:`calib.lm.dense_covariance`)."""
+    return np.sqrt(np.maximum(np.diag(dense_covariance(J, s2)), 0.0))
 
 
 def _fit(frames: list[_FrameEdges], state: _State, model: str, free_intr: tuple[str, ...], free_stroke: bool,

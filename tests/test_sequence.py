@@ -429,7 +429,8 @@ def test_joint_fit_jacobian_is_blocked_and_costs_the_same_evaluations_for_any_nu
 
 def test_blocked_normal_equations_match_the_dense_solve():
     """The Schur-complement step and covariance equal the dense ``(J^T J + lam D)^-1 J^T r`` and ``(J^T J)^-1``."""
-    from calib.sequence_model import _dense, _global_std, _lm_step, _normal_equations, _param_std
+    from calib.lm import DIAGONAL_FLOOR
+    from calib.sequence_model import _dense, _global_std, _param_std
 
     REL_TOL = 1e-8  # the steps
     STD_REL_TOL = 1e-6  # 1 sigma: both computations lose ~cond(M) eps, cond ~ 4e9 here (10 points per edge)
@@ -437,12 +438,12 @@ def test_blocked_normal_equations_match_the_dense_solve():
     for p, x in _problems(rng, 7):
         J, r = p.jacobian(x), p.residuals(x)
         w = rng.uniform(0.5, 1.0, p.n_rows)
-        N = _normal_equations(p, J, w, r)
         Jd = _dense(p, J) * w[:, None]
         A, g = Jd.T @ Jd, Jd.T @ (w * r)
         for lam in (1e-6, 1e-2, 10.0):
-            D = np.maximum(np.diag(A), 1e-12 * np.diag(A).max())
+            D = np.maximum(np.diag(A), DIAGONAL_FLOOR * np.diag(A).max())
             dx = -np.linalg.solve(A + lam * np.diag(D), g)
-            assert np.linalg.norm(_lm_step(p, N, lam) - dx) < REL_TOL * np.linalg.norm(dx), (p.model, lam)
+            step = -p.normal_equations(x, r, w**2).solve(lam * D)  # what calib.lm takes for this lam
+            assert np.linalg.norm(step - dx) < REL_TOL * np.linalg.norm(dx), (p.model, lam)
         std = _global_std(p, J, 0.02)
         np.testing.assert_allclose(std, _param_std(_dense(p, J), 0.02)[:p.n_global], rtol=STD_REL_TOL)
