@@ -66,8 +66,8 @@ def main() -> int:
     photos = list(frames(rng))
     wall, cpu, coarse_cpu, errs, fails = [], [], [], [], 0
     for p in photos:
-        grey = rings._grey(p.image)
-        _, cc, _ = timed(rings._coarse_ellipses, grey, 2)
+        grey = rings.grey_image(p.image)
+        _, cc, _ = timed(rings.coarse_ellipses, grey, 2)
         try:
             w_ms, c_ms, obs = timed(rings.detect_rings, p.image, SPEC)
         except CalibrationError:

@@ -34,7 +34,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from calib.camera import camera_centre_table  # noqa: E402
-from calib.sequence import _yaw_of  # noqa: E402
+from calib.sequence_model import yaw_of  # noqa: E402
 from turntable.cameras_io import read_cameras  # noqa: E402
 from turntable.images import list_images  # noqa: E402
 from turntable.stages.calibration import calibrate_folder  # noqa: E402
@@ -61,7 +61,7 @@ def metrics(seq, gt) -> dict:
     ok = [(f, g) for f, g in zip(seq.frames, gt.frames, strict=True) if f.ok]
     cen = np.array([np.linalg.norm(camera_centre_table(f.T_cam_table) - camera_centre_table(g.T_cam_table))
                     for f, g in ok])
-    yaw = np.array([abs(math.degrees(_yaw_of(f.T_cam_table[:3, :3].T @ g.T_cam_table[:3, :3]))) for f, g in ok])
+    yaw = np.array([abs(math.degrees(yaw_of(f.T_cam_table[:3, :3].T @ g.T_cam_table[:3, :3]))) for f, g in ok])
     ang = np.array([abs((f.angle_deg - g.angle_deg + 180) % 360 - 180) for f, g in ok
                     if math.isfinite(f.angle_deg)])
     Ke, Kg = seq.intrinsics.K, gt.intrinsics.K

@@ -92,7 +92,7 @@ def kernels(frame_counts, points_per_edge: int = 100) -> None:
     import numpy as np
 
     from calib.camera import circle_points_table, look_at, make_T, project_points
-    from calib.sequence_model import _FrameEdges, _Problem, _State, rot_y
+    from calib.sequence_model import FitState, FrameEdges, JointProblem, rot_y
     from calib.types import EdgePoints, TargetObservation
 
     K = np.array([[750.0, 0.0, 319.5], [0.0, 750.0, 239.5], [0.0, 0.0, 1.0]])
@@ -105,10 +105,10 @@ def kernels(frame_counts, points_per_edge: int = 100) -> None:
             T = T_ca @ make_T(rot_y(th), np.zeros(3))
             edges = tuple(EdgePoints(project_points(K, T, circle_points_table(r + s * 1.5, points_per_edge)), r, s)
                           for r in (80.0, 50.0) for s in (-1, 1))
-            frames.append(_FrameEdges.from_observation(TargetObservation(edges, 640, 480), points_per_edge))
-        st = _State(K=K, dist=np.zeros(5), stroke=3.0, R_cam_axis=T_ca[:3, :3], t_cam_axis=T_ca[:3, 3],
+            frames.append(FrameEdges.from_observation(TargetObservation(edges, 640, 480), points_per_edge))
+        st = FitState(K=K, dist=np.zeros(5), stroke=3.0, R_cam_axis=T_ca[:3, :3], t_cam_axis=T_ca[:3, 3],
                     d_xz=np.zeros(2), theta=theta)
-        p = _Problem(frames, st, ("f", "k1"), True, "turntable", free_theta=np.arange(n) > 0,
+        p = JointProblem(frames, st, ("f", "k1"), True, "turntable", free_theta=np.arange(n) > 0,
                      mark_R=[T_ca[:3, :3] @ rot_y(th) for th in theta], mark_w=np.full(n, 50.0))
         x = np.zeros(p.n_params)
         t_res = t_jac = float("inf")

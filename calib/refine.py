@@ -62,6 +62,7 @@ __all__ = [
     "RefineResult",
     "edge_residuals",
     "edge_linearisation",
+    "edge_geometry",
     "stack_edges",
     "refine_view",
 ]
@@ -110,11 +111,13 @@ def stack_edges(edges: tuple[EdgePoints, ...]) -> tuple[np.ndarray, np.ndarray, 
     return uv, R, side
 
 
-def _geometry(f, cx, cy, n, t, uv):
-    """Back-projection terms shared by residual and Jacobian.
+def edge_geometry(f, cx, cy, n, t, uv):
+    """Back-projection terms shared by residual and Jacobian (module docstring's notation).
 
-    ``n``, ``t``: the plane normal and circle centre (camera frame), (3,) for
-    all points or (N, 3), one per point (many views' points at once).
+    ``f, cx, cy``: pixels; ``uv`` (N, 2) pixels; ``n``, ``t``: the plane normal and
+    circle centre (camera frame, mm), (3,) for all points or (N, 3), one per point
+    (many views' points at once). Returns ``(s (N,), D (N, 3) mm, rho (N,) mm, D^ (N, 3),
+    k (N,), grad (N, 2) mm/px, |grad| (N,) mm/px)``.
     """
     q = np.empty((len(uv), 3))
     q[:, 0] = uv[:, 0] - cx
@@ -169,7 +172,7 @@ def edge_residuals(
     uv, R, side = stack_edges(edges)
     f, cx, cy = _unpack_K(K)
     T = np.asarray(T_cam_table, dtype=np.float64)
-    _, _, rho, _, _, _, g = _geometry(f, cx, cy, T[:3, 1], T[:3, 3], uv)
+    _, _, rho, _, _, _, g = edge_geometry(f, cx, cy, T[:3, 1], T[:3, 3], uv)
     return (rho - (R + 0.5 * side * stroke_mm)) / g + side * edge_offset_px
 
 
@@ -185,7 +188,7 @@ def edge_linearisation(
 
 
 def _linearise(f, cx, cy, n, t, w, uv, R, side, inv_g=None, delta=0.0) -> EdgeLinearisation:
-    s, D, rho, Dh, k, grad, g = _geometry(f, cx, cy, n, t, uv)
+    s, D, rho, Dh, k, grad, g = edge_geometry(f, cx, cy, n, t, uv)
     if inv_g is None:
         inv_g = 1.0 / g
     e = (rho - (R + 0.5 * side * w)) * inv_g + side * delta
@@ -273,7 +276,7 @@ class _Problem:
     def freeze_weights(self, p):
         """Fix the pixel weights ``1 / |grad rho|`` at ``p`` (None: current)."""
         f, n, t, _, _ = self.unpack(p)
-        self.inv_g = 1.0 / _geometry(f, self.cx, self.cy, n, t, self.uv)[-1]
+        self.inv_g = 1.0 / edge_geometry(f, self.cx, self.cy, n, t, self.uv)[-1]
 
     def rebase(self, n0):
         self.n0 = n0 / np.linalg.norm(n0)
@@ -299,7 +302,7 @@ class _Problem:
 
     def residual(self, p) -> np.ndarray:
         f, n, t, w, delta = self.unpack(p)
-        _, _, rho, _, _, _, g = _geometry(f, self.cx, self.cy, n, t, self.uv)
+        _, _, rho, _, _, _, g = edge_geometry(f, self.cx, self.cy, n, t, self.uv)
         inv_g = 1.0 / g if self.inv_g is None else self.inv_g
         return (rho - (self.R + 0.5 * self.side * w)) * inv_g + self.side * delta
 

@@ -44,7 +44,7 @@ from .edges import conic_samples, find_stroke_edges, line_conic_offsets
 from .target import TargetSpec
 from .types import CalibrationError, EdgePoints, TargetObservation
 
-__all__ = ["detect_rings", "pencil_ratio", "edge_conic", "COARSE_SIZE_PX"]
+__all__ = ["detect_rings", "pencil_ratio", "edge_conic", "grey_image", "coarse_ellipses", "COARSE_SIZE_PX"]
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +89,8 @@ def edge_conic(C_outer: np.ndarray, C_inner: np.ndarray, spec: TargetSpec, radiu
     return normalize_conic(a * C_outer / s + (1.0 - a) * C_inner)
 
 
-def _grey(image) -> np.ndarray:
+def grey_image(image) -> np.ndarray:
+    """A uint8 image (H, W) or BGR (H, W, 3) as one contiguous grey (H, W) uint8 array; ValueError otherwise."""
     img = np.asarray(image)
     if img.dtype != np.uint8:
         raise ValueError(f"image: expected uint8, got {img.dtype}")
@@ -100,7 +101,7 @@ def _grey(image) -> np.ndarray:
     raise ValueError(f"image: expected (H, W) or (H, W, 3), got {img.shape}")
 
 
-def _coarse_ellipses(grey: np.ndarray, f: int) -> tuple[list[np.ndarray], list[float]]:
+def coarse_ellipses(grey: np.ndarray, f: int) -> tuple[list[np.ndarray], list[float]]:
     """Ellipse conics (full-resolution pixels) found on ``grey`` downsampled ``f`` times, and their support."""
     h, w = grey.shape
     if f > 1:
@@ -275,7 +276,7 @@ def detect_rings(image, spec: TargetSpec, *, principal_point_px=None,
     ValueError
         For an image that is not uint8 (H, W) or (H, W, 3).
     """
-    grey = _grey(image)
+    grey = grey_image(image)
     if not edge_spacing_px > 0:
         raise ValueError(f"edge_spacing_px must be positive, got {edge_spacing_px}")
     if not 0.2 <= gamma <= 5.0:
@@ -285,7 +286,7 @@ def detect_rings(image, spec: TargetSpec, *, principal_point_px=None,
     first_error, seen = None, []
     for factor in dict.fromkeys((f, 1)):  # full resolution again for a target too small to see at f
         try:
-            conics, support = _coarse_ellipses(grey, factor)
+            conics, support = coarse_ellipses(grey, factor)
             rings = _strokes(conics, support, spec)
             seen.append(rings)
             pairs = _candidate_pairs(rings, spec)

@@ -62,18 +62,17 @@ from .camera import camera_centre_table, make_T
 from .distortion import undistort_px
 from .sequence_model import (
     FitReport,
+    FitState,
     FitStep,
-    _exp_so3,  # noqa: F401  (used by tests)
-    _Fit,
-    _fit,
-    _FrameEdges,
-    _Problem,
-    _project_rotation,
-    _solve,
-    _State,
-    _wrap,
-    _yaw_of,
+    FrameEdges,
+    JointFit,
+    JointProblem,
+    fit_joint,
+    project_rotation,
     rot_y,
+    solve_joint,
+    wrap_angle,
+    yaw_of,
 )
 from .target import TargetSpec
 from .types import (
@@ -91,6 +90,8 @@ log = logging.getLogger(__name__)
 __all__ = [
     "calibrate_sequence",
     "AngleReader",
+    "SingleView",
+    "single_view",
     "FitStep",
     "FitReport",
     "marks_angle_reader",
@@ -170,7 +171,7 @@ def _init_turntable(Ts: list[np.ndarray], theta: np.ndarray, yaw_known: bool) ->
     """
     if yaw_known:
         M = sum(T[:3, :3] @ rot_y(th).T for T, th in zip(Ts, theta, strict=True))
-        R_ca = _project_rotation(M)
+        R_ca = project_rotation(M)
         sol, per_frame, _ = _circle_fit(Ts, theta)
         C, d = sol[:3], sol[3:]
         return R_ca, -R_ca @ C, d, float(np.median(per_frame))
@@ -205,10 +206,16 @@ def marks_angle_reader(images: Sequence[np.ndarray | None], spec: TargetSpec,
 
 # --------------------------------------------------------------------------- per-frame stage
 @dataclass
-class _Single:
-    """One frame's single-view result (internal)."""
+class SingleView:
+    """One frame's single-view result, the joint fit's starting point (:func:`single_view`).
 
-    edges: _FrameEdges
+    ``edges``: its edge points, packed for the joint fit; ``T``: its ``T_cam_table``
+    (4, 4) mm, yaw aligned to the marks when ``yaw_ok``; ``focal_px``, ``rms_px``,
+    ``stroke_mm``: its own fit's; ``angle_std_deg``: the marks' reading 1-sigma;
+    ``angle_error``: why the marks were not read ("" when they were).
+    """
+
+    edges: FrameEdges
     T: np.ndarray  # single-view pose, yaw aligned to the marks when ``yaw_ok``
     focal_px: float
     rms_px: float
@@ -224,19 +231,21 @@ def _undistort_observation(obs: TargetObservation, intr: Intrinsics) -> TargetOb
     return replace(obs, edges=edges, conics={})
 
 
-def _single_view(obs: TargetObservation, spec: TargetSpec, pp, max_per_edge: int) -> _Single:
+def single_view(obs: TargetObservation, spec: TargetSpec, pp, max_per_edge: int) -> SingleView:
+    """Calibrate one frame alone (``calib.calibrate.calibrate_view``, solver "refine", principal point
+    ``pp`` or the image centre) and keep at most ``max_per_edge`` points per edge for the joint fit."""
     from .calibrate import calibrate_view
 
     cal = calibrate_view(obs, spec, solver="refine", principal_point_px=pp)
     stroke = float(cal.stroke_mm) if np.isfinite(cal.stroke_mm) else spec.stroke_mm
-    return _Single(edges=_FrameEdges.from_observation(obs, max_per_edge), T=np.asarray(cal.T_cam_table, float),
+    return SingleView(edges=FrameEdges.from_observation(obs, max_per_edge), T=np.asarray(cal.T_cam_table, float),
                    focal_px=cal.intrinsics.focal_px, rms_px=float(cal.rms_px), stroke_mm=stroke)
 
 
 def _per_frame(observations, spec, intr, pp, reader, failures, max_per_edge, progress):
     """Single-view calibration and mark reading of every frame: ``singles`` (None if failed), reasons."""
     n = len(observations)
-    singles: list[_Single | None] = [None] * n
+    singles: list[SingleView | None] = [None] * n
     reasons = [""] * n
     for k, obs in enumerate(observations):
         if obs is None:
@@ -245,7 +254,7 @@ def _per_frame(observations, spec, intr, pp, reader, failures, max_per_edge, pro
             try:
                 if intr is not None:
                     obs = _undistort_observation(obs, intr)
-                s = _single_view(obs, spec, pp, max_per_edge)
+                s = single_view(obs, spec, pp, max_per_edge)
                 if reader is not None:
                     K = intr.K if intr is not None else Intrinsics.from_focal(
                         s.focal_px, obs.width, obs.height, pp).K
@@ -273,7 +282,7 @@ def _fit_turntable(singles, idx, state0, theta0, free_theta, yaw_known, free_int
     st = replace(state0, R_cam_axis=R_ca, t_cam_axis=t_ca, d_xz=d, theta=theta0.copy(), R=None, t=None)
     mark_R = [singles[k].T[:3, :3] if singles[k].yaw_ok else None for k in idx]
     mark_w = _mark_weights([singles[k].angle_std_deg if singles[k].yaw_ok else np.nan for k in idx], noise_px)
-    fit = _fit(frames, st, "turntable", free_intr, free_stroke, report=report, free_theta=free_theta,
+    fit = fit_joint(frames, st, "turntable", free_intr, free_stroke, report=report, free_theta=free_theta,
                free_yaw=yaw_known, mark_R=mark_R, mark_w=mark_w)
     return fit, centre_rms
 
@@ -282,20 +291,20 @@ def _fit_handheld(singles, idx, state0, free_intr, free_stroke, report=None):
     frames = [singles[k].edges for k in idx]
     st = replace(state0, R=[singles[k].T[:3, :3] for k in idx], t=[singles[k].T[:3, 3] for k in idx],
                  R_cam_axis=None, t_cam_axis=None, d_xz=None, theta=None)
-    return _fit(frames, st, "handheld", free_intr, free_stroke, report=report)
+    return fit_joint(frames, st, "handheld", free_intr, free_stroke, report=report)
 
 
-def _refit(fit: _Fit, free_intr: tuple[str, ...], state: _State | None = None, report: FitReport | None = None,
-           stage: str = "") -> _Fit:
+def _refit(fit: JointFit, free_intr: tuple[str, ...], state: FitState | None = None, report: FitReport | None = None,
+           stage: str = "") -> JointFit:
     p = fit.problem
-    return _solve(_Problem(p.frames, fit.state if state is None else state, free_intr, p.free_stroke, p.model,
+    return solve_joint(JointProblem(p.frames, fit.state if state is None else state, free_intr, p.free_stroke, p.model,
                            free_theta=p.free_theta,
                            free_yaw=p.free_yaw, mark_R=p.mark_R, mark_w=p.mark_w), robust=False, report=report,
                   stage=stage)
 
 
-def _extend(fit: _Fit, base: tuple[str, ...], extra: tuple[str, ...], notes: dict,
-            report: FitReport | None = None) -> _Fit:
+def _extend(fit: JointFit, base: tuple[str, ...], extra: tuple[str, ...], notes: dict,
+            report: FitReport | None = None) -> JointFit:
     """Free ``extra`` intrinsics too, keeping those the data constrain (std <= MAX_STD).
 
     The least constrained one (largest std / MAX_STD) is dropped and the rest
@@ -316,7 +325,7 @@ def _extend(fit: _Fit, base: tuple[str, ...], extra: tuple[str, ...], notes: dic
     return fit
 
 
-def _add_distortion(fit: _Fit, notes: dict, report: FitReport | None = None) -> _Fit:
+def _add_distortion(fit: JointFit, notes: dict, report: FitReport | None = None) -> JointFit:
     """Free k1, then k2, each kept only if constrained (``MAX_STD``) and worth it.
 
     Worth it: the RMS edge residual drops by ``MIN_RMS_GAIN``. A small
@@ -473,7 +482,7 @@ def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, i
         K0, base = np.array([[f0, 0.0, cx], [0.0, f0, cy], [0.0, 0.0, 1.0]]), ("f",)
     free_stroke = any(singles[k].edges.has_stroke for k in ok)
     stroke0 = float(np.median([singles[k].stroke_mm for k in ok])) if free_stroke else 0.0
-    state0 = _State(K=K0, dist=np.zeros(5), stroke=stroke0)
+    state0 = FitState(K=K0, dist=np.zeros(5), stroke=stroke0)
     step_deg, step_note = _step_or_marks(singles, ok, names, step_deg)
     chosen, why, fit, used, checks, centre_rms, rms_pooled = _fit_model(singles, ok, names, step_deg, mode, state0,
                                                                         base, free_stroke, report)
@@ -540,8 +549,8 @@ def _step_or_marks(singles, ok, names, step_deg) -> tuple[float | None, str]:
     if len(checks) <= len(marked) / 2:
         return step_deg, ""
     ref = singles[marked[0]].T[:3, :3]
-    rel = [_yaw_of(ref.T @ singles[k].T[:3, :3]) for k in marked]
-    per_frame = [math.degrees(float(_wrap(b - a))) * TURN_SIGN / (kb - ka)
+    rel = [yaw_of(ref.T @ singles[k].T[:3, :3]) for k in marked]
+    per_frame = [math.degrees(float(wrap_angle(b - a))) * TURN_SIGN / (kb - ka)
                  for a, b, ka, kb in zip(rel[:-1], rel[1:], marked[:-1], marked[1:], strict=True)]
     read = float(np.median(per_frame))
     return None, (f"--step-deg {step_deg:g} contradicts the angle marks on {len(checks)} of {len(marked)} frames "
@@ -609,7 +618,7 @@ def _fit_model(singles, ok, names, step_deg, mode, state0, base, free_stroke, re
     return chosen, why, fit, ok, checks, centre_rms, rms_pooled
 
 
-def _bad_frames(fit: _Fit, used: list[int]) -> dict[int, str]:
+def _bad_frames(fit: JointFit, used: list[int]) -> dict[int, str]:
     """Frames whose edge RMS under the shared model exceeds ``BAD_FRAME_RATIO`` x the median (and 1 px)."""
     r = fit.rms_per_frame
     med = float(np.median(r))
@@ -618,7 +627,7 @@ def _bad_frames(fit: _Fit, used: list[int]) -> dict[int, str]:
             for i in np.flatnonzero(r > lim)}
 
 
-def _reread_marks(fit: _Fit, used: list[int], reader: AngleReader, report: FitReport | None = None) -> _Fit:
+def _reread_marks(fit: JointFit, used: list[int], reader: AngleReader, report: FitReport | None = None) -> JointFit:
     """Read the marks again through the joint model's camera and poses, and refit.
 
     The first reading went through each frame's single-view ``f`` and normal;
@@ -636,12 +645,12 @@ def _reread_marks(fit: _Fit, used: list[int], reader: AngleReader, report: FitRe
             continue  # keep the first reading
         mark_R[i] = np.asarray(T, float)[:3, :3]
         w[i] = _mark_weights([std], fit.rms_px)[0]
-    prob = _Problem(p.frames, st, p.free_intr, p.free_stroke, p.model, free_theta=p.free_theta,
+    prob = JointProblem(p.frames, st, p.free_intr, p.free_stroke, p.model, free_theta=p.free_theta,
                     free_yaw=p.free_yaw, mark_R=mark_R, mark_w=w)
-    return _solve(prob, robust=False, report=report, stage="turntable, marks read again")
+    return solve_joint(prob, robust=False, report=report, stage="turntable, marks read again")
 
 
-def _reread_yaw(fit: _Fit, used: list[int], singles, reader: AngleReader) -> None:
+def _reread_yaw(fit: JointFit, used: list[int], singles, reader: AngleReader) -> None:
     """Handheld: set each frame's rotation about the normal from the marks read through the final camera.
 
     The rings do not see it, so the fit kept the single-view reading, taken
@@ -670,11 +679,11 @@ def _initial_angles(singles, angled, names, step_deg):
         if have_step:
             theta[k] = math.radians(k * step_deg) / TURN_SIGN
         else:
-            theta[k] = _yaw_of(singles[ref].T[:3, :3].T @ singles[k].T[:3, :3])
+            theta[k] = yaw_of(singles[ref].T[:3, :3].T @ singles[k].T[:3, :3])
     if have_step and marked:
         for k in marked:
-            rel = _yaw_of(singles[ref].T[:3, :3].T @ singles[k].T[:3, :3])
-            diff = math.degrees(float(_wrap(rel - (theta[k] - theta[ref]))))
+            rel = yaw_of(singles[ref].T[:3, :3].T @ singles[k].T[:3, :3])
+            diff = math.degrees(float(wrap_angle(rel - (theta[k] - theta[ref]))))
             if abs(diff) > ANGLE_CHECK_DEG:
                 checks.append({"image": names[k], "marks_minus_step_deg": round(diff, 3)})
     free = np.array([(not have_step) and k != ref for k in angled])
@@ -686,7 +695,7 @@ def _num(x) -> float | None:
     return None if not math.isfinite(x) else x
 
 
-def _result(fit: _Fit, mode, why, singles, reasons, ok, used, names, size, intr, notes, checks, rms_pooled,
+def _result(fit: JointFit, mode, why, singles, reasons, ok, used, names, size, intr, notes, checks, rms_pooled,
             centre_rms) -> SequenceCalibration:
     st = fit.state
     W, H = size
@@ -736,7 +745,7 @@ def _result(fit: _Fit, mode, why, singles, reasons, ok, used, names, size, intr,
             "camera_centres_off_circle_median_mm": _num(centre_rms),
         }
         p = fit.problem
-        res = [math.degrees(p._mark_residual(i, Ts[i][:3, :3]) / p.mark_w[i])
+        res = [math.degrees(p.mark_residual(i, Ts[i][:3, :3]) / p.mark_w[i])
                for i in range(len(used)) if p.has_mark[i]]
         if res:
             meta["turntable"]["marks_residual_deg"] = {"median_abs": float(np.median(np.abs(res))),

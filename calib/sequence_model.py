@@ -40,10 +40,29 @@ import numpy as np
 from .camera import make_T
 from .distortion import undistort_px
 from .lm import LMIteration, dense_covariance, levenberg_marquardt
-from .refine import _geometry
+from .refine import edge_geometry
 from .types import CalibrationError, TargetObservation
 
-__all__ = ["rot_y", "FitStep"]
+__all__ = [
+    "rot_y",
+    "exp_so3",
+    "yaw_of",
+    "project_rotation",
+    "wrap_angle",
+    "FrameEdges",
+    "FitState",
+    "JointProblem",
+    "BlockJacobian",
+    "JointFit",
+    "FitStep",
+    "FitReport",
+    "fit_joint",
+    "solve_joint",
+    "global_std",
+    "dense_jacobian",
+    "param_std",
+    "ROBUST_SCALE_PX",
+]
 
 #: soft-L1 scale (px) of the robust stage of the joint fit
 ROBUST_SCALE_PX = 1.0
@@ -56,7 +75,8 @@ def rot_y(theta: float) -> np.ndarray:
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
-def _exp_so3(w: np.ndarray) -> np.ndarray:
+def exp_so3(w: np.ndarray) -> np.ndarray:
+    """Rotation (3, 3) of the rotation vector ``w`` (3,) radians (Rodrigues)."""
     th = float(np.linalg.norm(w))
     W = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
     if th < 1e-12:
@@ -64,12 +84,13 @@ def _exp_so3(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + math.sin(th) / th * W + (1.0 - math.cos(th)) / th**2 * (W @ W)
 
 
-def _yaw_of(R: np.ndarray) -> float:
+def yaw_of(R: np.ndarray) -> float:
     """Angle (rad) of the rotation about +Y closest to ``R`` (3, 3)."""
     return math.atan2(R[0, 2] - R[2, 0], R[0, 0] + R[2, 2])
 
 
-def _project_rotation(M: np.ndarray) -> np.ndarray:
+def project_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation (3, 3) nearest ``M`` (3, 3) in the Frobenius norm (SVD, determinant +1)."""
     U, _, Vt = np.linalg.svd(M)
     R = U @ Vt
     if np.linalg.det(R) < 0:
@@ -78,20 +99,25 @@ def _project_rotation(M: np.ndarray) -> np.ndarray:
     return R
 
 
-def _wrap(a: np.ndarray | float):
+def wrap_angle(a: np.ndarray | float):
+    """Angles (radians, any shape) wrapped into ``[-pi, pi)``."""
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
 # --------------------------------------------------------------------------- edge data
 @dataclass(frozen=True)
-class _FrameEdges:
-    """Edge points of one frame, packed for vectorised residuals."""
+class FrameEdges:
+    """Edge points of one frame, packed for the joint fit's vectorised residuals.
+
+    ``uv_px`` (N, 2) raw (distorted) pixels; ``groups``: one ``(rows slice, ring_radius_mm, side)``
+    per edge set. :meth:`from_observation` keeps at most ``max_per_edge`` points per edge, evenly.
+    """
 
     uv_px: np.ndarray  # (N, 2) raw (distorted) pixels
     groups: tuple  # ((slice, ring_radius_mm, side), ...)
 
     @classmethod
-    def from_observation(cls, obs: TargetObservation, max_per_edge: int) -> _FrameEdges:
+    def from_observation(cls, obs: TargetObservation, max_per_edge: int) -> FrameEdges:
         uvs, groups, n = [], [], 0
         for e in obs.edges:
             uv = e.uv_px
@@ -106,7 +132,7 @@ class _FrameEdges:
             raise CalibrationError("no edge points")
         return cls(np.concatenate(uvs), tuple(groups))
 
-    def select(self, keep: np.ndarray) -> _FrameEdges:
+    def select(self, keep: np.ndarray) -> FrameEdges:
         uvs, groups, n = [], [], 0
         for sl, r, side in self.groups:
             uv = self.uv_px[sl][keep[sl]]
@@ -115,7 +141,7 @@ class _FrameEdges:
             uvs.append(uv)
             groups.append((slice(n, n + len(uv)), r, side))
             n += len(uv)
-        return _FrameEdges(np.concatenate(uvs), tuple(groups))
+        return FrameEdges(np.concatenate(uvs), tuple(groups))
 
     @property
     def has_stroke(self) -> bool:
@@ -127,8 +153,13 @@ _INTR_NAMES = ("f", "cx", "cy", "k1", "k2")
 
 
 @dataclass
-class _State:
-    """Everything the joint fit estimates (plain arrays; internal)."""
+class FitState:
+    """Everything the joint fit estimates, in plain arrays (mm, radians).
+
+    ``K`` (3, 3), ``dist`` (5,) OpenCV coefficients, ``stroke`` mm; a turntable's
+    ``R_cam_axis`` (3, 3), ``t_cam_axis`` (3,), ``d_xz`` (2,) the pattern's offset from the
+    axis and ``theta`` (n,) each frame's angle; or a hand-held sequence's per-frame ``R``, ``t``.
+    """
 
     K: np.ndarray
     dist: np.ndarray  # (5,)
@@ -154,8 +185,9 @@ class _State:
         return Ts
 
 
-class _Problem:
-    """Parameter packing, residuals and a block-sparse finite-difference Jacobian.
+class JointProblem:
+    """The joint fit as a :class:`calib.lm.LeastSquaresProblem`: parameter packing (relative to the
+    state ``state``), residuals and a block-sparse finite-difference Jacobian.
 
     Global parameters (free intrinsics, stroke, turntable geometry) touch every
     frame; local ones (theta_k, or a handheld frame's 5) touch one frame, so
@@ -164,7 +196,7 @@ class _Problem:
     order (frame ``k``'s from ``local_start[k]``).
     """
 
-    def __init__(self, frames: list[_FrameEdges], state: _State, free_intr: tuple[str, ...],
+    def __init__(self, frames: list[FrameEdges], state: FitState, free_intr: tuple[str, ...],
                  free_stroke: bool, model: str, free_theta: np.ndarray | None = None,
                  free_yaw: bool = True, mark_R: list | None = None, mark_w: np.ndarray | None = None):
         self.frames, self.s0, self.model = frames, state, model
@@ -199,7 +231,7 @@ class _Problem:
         self._undistorted: tuple[tuple[bytes, bytes] | None, np.ndarray | None] = (None, None)
 
     # -- packing ------------------------------------------------------------
-    def unpack(self, x: np.ndarray) -> _State:
+    def unpack(self, x: np.ndarray) -> FitState:
         s0, i = self.s0, 0
         K, dist = s0.K.copy(), s0.dist.copy()
         for name in self.free_intr:
@@ -216,7 +248,7 @@ class _Problem:
         if self.free_stroke:
             stroke = s0.stroke + x[i]
             i += 1
-        st = _State(K=K, dist=dist, stroke=stroke)
+        st = FitState(K=K, dist=dist, stroke=stroke)
         if self.model == "turntable":
             assert s0.R_cam_axis is not None and s0.theta is not None
             R0 = s0.R_cam_axis
@@ -225,7 +257,7 @@ class _Problem:
             if self.free_yaw:
                 w = w + x[i] * R0[:, 1]
                 i += 1
-            st.R_cam_axis = _exp_so3(w) @ R0
+            st.R_cam_axis = exp_so3(w) @ R0
             st.t_cam_axis = s0.t_cam_axis + x[i:i + 3]
             st.d_xz = s0.d_xz + x[i + 3:i + 5]
             theta = s0.theta.copy()
@@ -237,11 +269,11 @@ class _Problem:
             st.R, st.t = [], []
             for k in range(len(self.frames)):
                 j = self.local_start[k]
-                st.R.append(s0.R[k] @ _exp_so3(np.array([x[j], 0.0, x[j + 1]])))
+                st.R.append(s0.R[k] @ exp_so3(np.array([x[j], 0.0, x[j + 1]])))
                 st.t.append(s0.t[k] + x[j + 2:j + 5])
         return st
 
-    def _poses(self, st: _State) -> np.ndarray:
+    def _poses(self, st: FitState) -> np.ndarray:
         """Every frame's ``T_cam_table`` (n, 4, 4) of a full state."""
         if st.R is not None:
             return np.array(st.poses()).reshape(-1, 4, 4)
@@ -265,8 +297,9 @@ class _Problem:
         return cast(np.ndarray, self._undistorted[1])  # set for this key just above
 
     # -- residuals ----------------------------------------------------------
-    def _mark_residual(self, k: int, R_model: np.ndarray) -> float:
-        return self.mark_w[k] * _yaw_of(R_model.T @ self.mark_R[k])
+    def mark_residual(self, k: int, R_model: np.ndarray) -> float:
+        """Frame ``k``'s mark row: the yaw (rad) between ``R_model`` (3, 3) and the marks', times its weight."""
+        return self.mark_w[k] * yaw_of(R_model.T @ self.mark_R[k])
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
         """All rows (n_rows,): every frame's edge residuals (px) in frame order, then the mark rows."""
@@ -276,14 +309,14 @@ class _Problem:
         n_e = int(self.row_start[-1])
         out = np.empty(self.n_rows)
         n, t = Ts[:, :3, 1][self.row_frame], Ts[:, :3, 3][self.row_frame]  # each row's plane normal, centre
-        _, _, rho, _, _, _, g = _geometry(st.K[0, 0], st.K[0, 2], st.K[1, 2], n, t, uv)
+        _, _, rho, _, _, _, g = edge_geometry(st.K[0, 0], st.K[0, 2], st.K[1, 2], n, t, uv)
         out[:n_e] = (rho - (self.ring_mm + 0.5 * self.side * st.stroke)) / g
         mk = self.mark_frames
         M = np.einsum("kji,kjl->kil", Ts[mk, :3, :3], self.mark_R_stack, optimize=False)  # R_model^T R_marks
         out[n_e:] = self.mark_w[mk] * np.arctan2(M[:, 0, 2] - M[:, 2, 0], M[:, 0, 0] + M[:, 2, 2])
         return out
 
-    def jacobian(self, x: np.ndarray) -> _BlockJacobian:
+    def jacobian(self, x: np.ndarray) -> BlockJacobian:
         """Forward differences, block by block.
 
         A frame's rows depend on the global parameters and its own only, so
@@ -298,7 +331,7 @@ class _Problem:
         by ~15 px and f by ~1 % at 0.15 px noise (exact differences: 0.6 px, 0.09 %).
         """
         n_l = int(self.n_local.max(initial=0))
-        J = _BlockJacobian(glob=np.zeros((self.n_rows, self.n_global)), local=np.zeros((self.n_rows, n_l)))
+        J = BlockJacobian(glob=np.zeros((self.n_rows, self.n_global)), local=np.zeros((self.n_rows, n_l)))
         r0 = self.residuals(x)
         for j in range(self.n_global):
             h = 1e-6 * max(1.0, abs(x[j]))
@@ -332,7 +365,7 @@ class _Problem:
 
 
 @dataclass(frozen=True)
-class _BlockJacobian:
+class BlockJacobian:
     """The Jacobian (n_rows, n_params) in its block-sparse form, memory linear in the frames.
 
     ``glob`` (n_rows, n_global): every row's derivatives by the global
@@ -367,7 +400,7 @@ class _Normal:
         return np.diagonal(self.U).copy(), np.diagonal(self.V, axis1=1, axis2=2).copy()
 
 
-def _normal_equations(problem: _Problem, J: _BlockJacobian, w: np.ndarray, r: np.ndarray) -> _Normal:
+def _normal_equations(problem: JointProblem, J: BlockJacobian, w: np.ndarray, r: np.ndarray) -> _Normal:
     """``(Jw)^T Jw`` and ``(Jw)^T (w r)`` in blocks, for row weights ``w`` (n_rows,) and residuals ``r``.
 
     Per-frame products of a few hundred rows by a few columns (``einsum``
@@ -435,13 +468,17 @@ FitReport = Callable[[FitStep], None]
 
 
 @dataclass(frozen=True)
-class _Fit:
-    state: _State
+class JointFit:
+    """One solve of a :class:`JointProblem` (:func:`solve_joint`): the estimated ``state``, 1-sigma
+    ``std`` by parameter name (intrinsics "f" in px, "cx", "cy", "k1", "k2", "stroke" mm), the edge
+    RMS (px) overall and per frame, all ``residuals`` (n_rows,) and the ``problem`` solved."""
+
+    state: FitState
     std: dict  # parameter name -> 1 sigma (intrinsics, stroke)
     rms_px: float
     rms_per_frame: np.ndarray
     residuals: np.ndarray
-    problem: _Problem
+    problem: JointProblem
 
 
 @dataclass(frozen=True)
@@ -467,7 +504,10 @@ class _BlockSystem:
         return np.concatenate([x_g, x_l[~self.N.pad]])
 
 
-def _solve(problem: _Problem, robust: bool, report: FitReport | None = None, stage: str = "") -> _Fit:
+def solve_joint(problem: JointProblem, robust: bool, report: FitReport | None = None, stage: str = "") -> JointFit:
+    """Solve ``problem`` from its state (:func:`calib.lm.levenberg_marquardt`; soft-L1 of
+    ``ROBUST_SCALE_PX`` when ``robust``, else least squares) and the global parameters' 1-sigma
+    (:func:`global_std`). ``report`` is told every iteration, as ``stage``."""
     label = f"{stage}, robust" if robust and stage else stage
 
     def tell(it: LMIteration) -> None:
@@ -479,7 +519,7 @@ def _solve(problem: _Problem, robust: bool, report: FitReport | None = None, sta
     x, r = sol.x, sol.residuals
     J = problem.jacobian(x)
     n_e = int(problem.row_start[-1])
-    std = _global_std(problem, J, sol.sigma2)
+    std = global_std(problem, J, sol.sigma2)
     names = list(problem.free_intr) + (["stroke"] if problem.free_stroke else [])
     st = problem.unpack(x)
     out = {}
@@ -488,7 +528,7 @@ def _solve(problem: _Problem, robust: bool, report: FitReport | None = None, sta
         if name == "f":
             s *= problem.s0.K[0, 0]
         out[name] = float(s)
-    return _Fit(state=st, std=out, rms_px=float(np.sqrt(np.mean(r[:n_e] ** 2))),
+    return JointFit(state=st, std=out, rms_px=float(np.sqrt(np.mean(r[:n_e] ** 2))),
                 rms_per_frame=problem.edge_rms_per_frame(r), residuals=r, problem=problem)
 
 
@@ -496,14 +536,14 @@ def _solve(problem: _Problem, robust: bool, report: FitReport | None = None, sta
 _SCHUR_MIN_EIG = 1e-10
 
 
-def _global_std(problem: _Problem, J: _BlockJacobian, s2: float) -> np.ndarray:
+def global_std(problem: JointProblem, J: BlockJacobian, s2: float) -> np.ndarray:
     """1-sigma (n_global,) of the global parameters from ``s2 (J^T J)^-1``; inf where singular.
 
     On the column-normalised ``M = Js^T Js`` (unit diagonal): the global block
     of ``M^-1`` is the inverse of its Schur complement over the frames'
     blocks. Where a block or that complement is near singular (an
     unconstrained parameter) the whole ``M`` is assembled and its
-    eigenvalues clamped, as :func:`_param_std` does (memory ``n_params^2``).
+    eigenvalues clamped, as :func:`param_std` does (memory ``n_params^2``).
     """
     N = _normal_equations(problem, J, np.ones(problem.n_rows), np.zeros(problem.n_rows))
     dg, dl = N.diagonal()
@@ -525,12 +565,12 @@ def _global_std(problem: _Problem, J: _BlockJacobian, s2: float) -> np.ndarray:
     except np.linalg.LinAlgError:
         ok = False
     if not ok:
-        return _param_std(_dense(problem, J), s2)[:problem.n_global]
+        return param_std(dense_jacobian(problem, J), s2)[:problem.n_global]
     cov = (Q / e) @ Q.T
     return np.sqrt(np.maximum(np.diag(cov), 0.0) * s2) / ng
 
 
-def _dense(problem: _Problem, J: _BlockJacobian) -> np.ndarray:
+def dense_jacobian(problem: JointProblem, J: BlockJacobian) -> np.ndarray:
     """The dense Jacobian (n_rows, n_params) of a blocked one (memory ``n_rows * n_params``: fallback only)."""
     D = np.zeros((problem.n_rows, problem.n_params))
     D[:, :problem.n_global] = J.glob
@@ -542,15 +582,15 @@ def _dense(problem: _Problem, J: _BlockJacobian) -> np.ndarray:
     return D
 
 
-def _param_std(J: np.ndarray, s2: float) -> np.ndarray:
+def param_std(J: np.ndarray, s2: float) -> np.ndarray:
     """1-sigma of each parameter from ``s2 (J^T J)^-1`` for a dense ``J`` (:func:`calib.lm.dense_covariance`)."""
     return np.sqrt(np.maximum(np.diag(dense_covariance(J, s2)), 0.0))
 
 
-def _fit(frames: list[_FrameEdges], state: _State, model: str, free_intr: tuple[str, ...], free_stroke: bool,
-         report: FitReport | None = None, **kw) -> _Fit:
+def fit_joint(frames: list[FrameEdges], state: FitState, model: str, free_intr: tuple[str, ...], free_stroke: bool,
+              report: FitReport | None = None, **kw) -> JointFit:
     """Robust fit (soft L1, 1 px), drop edge points beyond 5 robust sigmas, final least squares."""
-    fit = _solve(_Problem(frames, state, free_intr, free_stroke, model, **kw), robust=True, report=report,
+    fit = solve_joint(JointProblem(frames, state, free_intr, free_stroke, model, **kw), robust=True, report=report,
                  stage=model)
     r = fit.residuals
     n_e = int(fit.problem.row_start[-1])
@@ -561,5 +601,5 @@ def _fit(frames: list[_FrameEdges], state: _State, model: str, free_intr: tuple[
         rk = r[fit.problem.row_start[k]:fit.problem.row_start[k + 1]]
         keep = np.abs(rk) <= thr
         kept.append(fe if keep.all() else fe.select(keep))
-    return _solve(_Problem(kept, fit.state, free_intr, free_stroke, model, **kw), robust=False, report=report,
+    return solve_joint(JointProblem(kept, fit.state, free_intr, free_stroke, model, **kw), robust=False, report=report,
                   stage=model)

@@ -4,7 +4,7 @@ Edges are exact points on the projected (and distorted) edge circles plus
 Gaussian noise; the angle marks are simulated by a reader that returns the
 true rotation about the table normal plus noise. The single-view stage is
 replaced by a perturbed ground truth where a test is about the joint maths
-alone (``_single_view`` monkeypatched), and run for real in the end-to-end tests.
+alone (``single_view`` monkeypatched), and run for real in the end-to-end tests.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import calib.sequence as cs
+import calib.sequence_model as sm
 from calib.camera import camera_centre_table, circle_points_table, look_at, make_T, project_points
 from calib.distortion import distort_px
 from calib.target import TargetSpec
@@ -69,7 +70,7 @@ def handheld_truth(rng, n=8, f=1400.0, pp=(20.0, -12.0)):
 
 def fake_reader(Ts_true, rng, std_deg=0.05):
     def read(k, K, T, dist=None):
-        psi = cs._yaw_of(T[:3, :3].T @ Ts_true[k][:3, :3]) + math.radians(rng.normal(0, std_deg))
+        psi = sm.yaw_of(T[:3, :3].T @ Ts_true[k][:3, :3]) + math.radians(rng.normal(0, std_deg))
         return make_T(T[:3, :3] @ cs.rot_y(psi), T[:3, 3]), std_deg
 
     return read
@@ -83,8 +84,8 @@ def perturbed_single_view(Ts_true, K_true, rng):
         k = lookup.pop(0)
         T = Ts_true[k]
         w = rng.normal(0, math.radians(0.5), 3)
-        R = cs._exp_so3(w) @ T[:3, :3] @ cs.rot_y(rng.uniform(-np.pi, np.pi))
-        return cs._Single(edges=cs._FrameEdges.from_observation(obs, max_per_edge),
+        R = sm.exp_so3(w) @ T[:3, :3] @ cs.rot_y(rng.uniform(-np.pi, np.pi))
+        return cs.SingleView(edges=sm.FrameEdges.from_observation(obs, max_per_edge),
                           T=make_T(R, T[:3, 3] + rng.normal(0, 3.0, 3)),
                           focal_px=K_true[0, 0] * (1 + rng.normal(0, 0.01)), rms_px=0.15, stroke_mm=3.0)
 
@@ -95,7 +96,7 @@ def run_synthetic(monkeypatch, rng, K, dist, Ts, n_per_edge=400, **kw):
     obs = [synth_observation(K, dist, T, rng, n_per_edge=n_per_edge) for T in Ts]
     single, lookup = perturbed_single_view(Ts, K, rng)
     lookup.extend(range(len(obs)))
-    monkeypatch.setattr(cs, "_single_view", single)
+    monkeypatch.setattr(cs, "single_view", single)
     return cs.calibrate_sequence(obs, None, SPEC, angle_reader=fake_reader(Ts, rng), **kw)
 
 
@@ -106,8 +107,8 @@ def centre_errors_mm(seq, Ts):
 
 def angle_errors_deg(seq, theta_true):
     est = np.radians([f.angle_deg for f in seq.frames])
-    d = cs._wrap(est - cs.TURN_SIGN * theta_true)
-    d = cs._wrap(d - math.atan2(np.sin(d).mean(), np.cos(d).mean()))  # common offset: a gauge
+    d = sm.wrap_angle(est - cs.TURN_SIGN * theta_true)
+    d = sm.wrap_angle(d - math.atan2(np.sin(d).mean(), np.cos(d).mean()))  # common offset: a gauge
     return np.degrees(np.abs(d))
 
 
@@ -165,7 +166,7 @@ def test_turntable_step_fixes_angles_and_flags_disagreeing_marks(monkeypatch):
     obs = [synth_observation(K, np.zeros(5), T, rng, n_per_edge=200) for T in Ts_bad]
     single, lookup = perturbed_single_view(Ts_bad, K, rng)
     lookup.extend(range(len(obs)))
-    monkeypatch.setattr(cs, "_single_view", single)
+    monkeypatch.setattr(cs, "single_view", single)
     seq = cs.calibrate_sequence(obs, None, SPEC, step_deg=30.0, mode="turntable",
                                 angle_reader=fake_reader(Ts_bad, rng))
     assert [f.angle_deg for f in seq.frames][:3] == pytest.approx([0.0, 30.0, 60.0])
@@ -180,7 +181,7 @@ def test_a_step_the_marks_contradict_is_not_used_and_the_warning_says_so(monkeyp
     obs = [synth_observation(K, np.zeros(5), T, rng, n_per_edge=200) for T in Ts]
     single, lookup = perturbed_single_view(Ts, K, rng)
     lookup.extend(range(len(obs)))
-    monkeypatch.setattr(cs, "_single_view", single)
+    monkeypatch.setattr(cs, "single_view", single)
     seq = cs.calibrate_sequence(obs, None, SPEC, step_deg=10.0, angle_reader=fake_reader(Ts, rng))
     assert seq.mode == "turntable"
     [warning] = seq.meta["warnings"]
@@ -225,7 +226,7 @@ def test_failed_frames_are_reported_and_the_rest_calibrate(monkeypatch):
     obs[2] = None
     single, lookup = perturbed_single_view(Ts, K, rng)
     lookup.extend(k for k, o in enumerate(obs) if o is not None)
-    monkeypatch.setattr(cs, "_single_view", single)
+    monkeypatch.setattr(cs, "single_view", single)
     good = fake_reader(Ts, rng)
 
     def reader(k, K_, T, dist=None):
@@ -330,7 +331,7 @@ def test_rendered_turntable_sequence_end_to_end(tmp_path, capsys):
     seq = read_cameras(tmp_path / "cams.json")
     assert seq.mode == "turntable" and all(fr.ok for fr in seq.frames)
     assert abs(seq.intrinsics.focal_px / f - 1) < 0.005
-    err = np.abs(cs._wrap(np.radians([fr.angle_deg for fr in seq.frames]) - theta))
+    err = np.abs(sm.wrap_angle(np.radians([fr.angle_deg for fr in seq.frames]) - theta))
     assert np.degrees(err).max() < 0.3
     assert np.max(centre_errors_mm(seq, Ts)) < 3.0
 
@@ -346,7 +347,7 @@ def test_a_frame_that_does_not_fit_the_shared_camera_is_dropped(monkeypatch):
                                            for e in obs[3].edges), width=W, height=H)
     single, lookup = perturbed_single_view(Ts, K, rng)
     lookup.extend(range(len(obs)))
-    monkeypatch.setattr(cs, "_single_view", single)
+    monkeypatch.setattr(cs, "single_view", single)
     seq = cs.calibrate_sequence(obs, None, SPEC, angle_reader=fake_reader(Ts, rng), distortion="none")
     assert seq.frames[3].status.startswith("does not fit the shared camera")
     assert sum(f.ok for f in seq.frames) == 7 and seq.mode == "turntable"
@@ -388,20 +389,20 @@ def test_one_upside_down_frame_is_left_out_not_a_switch_to_handheld(monkeypatch)
 def _problems(rng, n):
     """A turntable problem (marks on all frames but one, the first angle fixed) and a handheld one, n frames,
     10 edge points per edge, started off the truth; and a parameter vector off zero."""
-    from calib.sequence_model import _FrameEdges, _Problem, _State
+    from calib.sequence_model import FitState, FrameEdges, JointProblem
 
     K, theta, Ts = turntable_truth(rng, n=n, step=360.0 / n)
-    frames = [_FrameEdges.from_observation(synth_observation(K, np.zeros(5), T, rng), 10) for T in Ts]
+    frames = [FrameEdges.from_observation(synth_observation(K, np.zeros(5), T, rng), 10) for T in Ts]
     d = np.array([2.0, 0.0, -1.5])
     T_ca = Ts[0] @ np.linalg.inv(make_T(cs.rot_y(theta[0]), cs.rot_y(theta[0]) @ d))
-    st = cs._State(K=K * [[1.01], [1.01], [1]], dist=np.array([-0.01, 0, 0, 0, 0.0]), stroke=3.0,
+    st = sm.FitState(K=K * [[1.01], [1.01], [1]], dist=np.array([-0.01, 0, 0, 0, 0.0]), stroke=3.0,
                    R_cam_axis=T_ca[:3, :3], t_cam_axis=T_ca[:3, 3] + 1.0, d_xz=np.zeros(2), theta=theta + 0.01)
     free = np.arange(n) > 0
     mark_R = [None] + [T[:3, :3] for T in Ts[1:]]
-    tt = _Problem(frames, st, ("f", "k1"), True, "turntable", free_theta=free, mark_R=mark_R,
+    tt = JointProblem(frames, st, ("f", "k1"), True, "turntable", free_theta=free, mark_R=mark_R,
                   mark_w=np.full(n, 50.0))
-    sh = _State(K=st.K, dist=st.dist, stroke=3.0, R=[T[:3, :3] for T in Ts], t=[T[:3, 3] + 1.0 for T in Ts])
-    hh = _Problem(frames, sh, ("f", "cx", "cy", "k1"), True, "handheld")
+    sh = FitState(K=st.K, dist=st.dist, stroke=3.0, R=[T[:3, :3] for T in Ts], t=[T[:3, 3] + 1.0 for T in Ts])
+    hh = JointProblem(frames, sh, ("f", "cx", "cy", "k1"), True, "handheld")
     return [(p, rng.normal(0, 1e-3, p.n_params)) for p in (tt, hh)]
 
 
@@ -410,11 +411,11 @@ def test_joint_fit_jacobian_is_blocked_and_costs_the_same_evaluations_for_any_nu
     frame's own (at most 5) for every row -- never a dense (rows, parameters) array whose width grows
     with the frames -- and is built from a fixed number of residual evaluations of all rows (every
     frame's c-th parameter is stepped at once), not one per frame's parameter."""
-    from calib.sequence_model import _Problem
+    from calib.sequence_model import JointProblem
 
     calls = []
-    evaluate = _Problem.residuals
-    monkeypatch.setattr(_Problem, "residuals", lambda self, x: calls.append(1) or evaluate(self, x))
+    evaluate = JointProblem.residuals
+    monkeypatch.setattr(JointProblem, "residuals", lambda self, x: calls.append(1) or evaluate(self, x))
     per_jacobian, expected = {}, {}
     for n in (4, 12):
         for p, x in _problems(np.random.default_rng(20), n):
@@ -430,7 +431,7 @@ def test_joint_fit_jacobian_is_blocked_and_costs_the_same_evaluations_for_any_nu
 def test_blocked_normal_equations_match_the_dense_solve():
     """The Schur-complement step and covariance equal the dense ``(J^T J + lam D)^-1 J^T r`` and ``(J^T J)^-1``."""
     from calib.lm import DIAGONAL_FLOOR
-    from calib.sequence_model import _dense, _global_std, _param_std
+    from calib.sequence_model import dense_jacobian, global_std, param_std
 
     REL_TOL = 1e-8  # the steps
     STD_REL_TOL = 1e-6  # 1 sigma: both computations lose ~cond(M) eps, cond ~ 4e9 here (10 points per edge)
@@ -438,12 +439,12 @@ def test_blocked_normal_equations_match_the_dense_solve():
     for p, x in _problems(rng, 7):
         J, r = p.jacobian(x), p.residuals(x)
         w = rng.uniform(0.5, 1.0, p.n_rows)
-        Jd = _dense(p, J) * w[:, None]
+        Jd = dense_jacobian(p, J) * w[:, None]
         A, g = Jd.T @ Jd, Jd.T @ (w * r)
         for lam in (1e-6, 1e-2, 10.0):
             D = np.maximum(np.diag(A), DIAGONAL_FLOOR * np.diag(A).max())
             dx = -np.linalg.solve(A + lam * np.diag(D), g)
             step = -p.normal_equations(x, r, w**2).solve(lam * D)  # what calib.lm takes for this lam
             assert np.linalg.norm(step - dx) < REL_TOL * np.linalg.norm(dx), (p.model, lam)
-        std = _global_std(p, J, 0.02)
-        np.testing.assert_allclose(std, _param_std(_dense(p, J), 0.02)[:p.n_global], rtol=STD_REL_TOL)
+        std = global_std(p, J, 0.02)
+        np.testing.assert_allclose(std, param_std(dense_jacobian(p, J), 0.02)[:p.n_global], rtol=STD_REL_TOL)
