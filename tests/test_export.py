@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
+import shutil
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -169,3 +172,380 @@ def test_nerfstudio_round_trip_and_projection(tmp_path):
         v = doc["cy"] - doc["fl_y"] * P[:, 1] / -P[:, 2]
         assert np.all(P[:, 2] < 0)
         assert np.allclose(np.column_stack([u, v]) - 0.5, project_points(K_CAM, T, pts), atol=PIX_TOL)
+
+
+# --- COLMAP tracks ---------------------------------------------------------------------------------
+
+DIST = np.array([-0.08, 0.012, 0.0007, -0.0005, 0.002])  # k1 k2 p1 p2 k3: FULL_OPENCV
+OBS_PIX_TOL = 1.0  # an observation against its point's independent reprojection, pixels
+TEXT_PIX_TOL = 1e-4  # the same after the text round trip (6 decimals written)
+BIG = (np.array([0.0, 50.0, 0.0]), 40.0)  # sphere centre (mm, table frame) and radius (mm)
+SMALL = (np.array([0.0, 60.0, 110.0]), 18.0)  # in front of the big one, as seen from camera 0 (+Z)
+SIZE = (800, 600)
+K_TRACKS = np.array([[900.0, 0.0, 411.3], [0.0, 905.0, 296.8], [0.0, 0.0, 1.0]])
+
+
+def two_spheres() -> TableMesh:
+    """A big sphere and a small one occluding part of it from camera 0, both with grey vertices."""
+    parts = [trimesh.creation.icosphere(subdivisions=4, radius=r).apply_translation(c) for c, r in (BIG, SMALL)]
+    tm = trimesh.util.concatenate(parts)
+    return TableMesh(np.asarray(tm.vertices), np.asarray(tm.faces, np.int64),
+                     colors_rgb=np.full((len(tm.vertices), 3), 90, np.uint8))
+
+
+def ring_cameras(n=8, distance_mm=420.0, elevation_deg=25.0) -> np.ndarray:
+    from calib.camera import look_at
+
+    Ts = []
+    for k in range(n):
+        a, e = np.radians(360.0 * k / n), np.radians(elevation_deg)
+        centre = np.array([np.sin(a) * np.cos(e), np.sin(e), np.cos(a) * np.cos(e)]) * distance_mm
+        Ts.append(look_at(centre, np.array([0.0, 50.0, 0.0])))
+    return np.stack(Ts)
+
+
+FACET_COS = 0.05  # the icosphere's facets turn up to ~3 degrees from the true sphere's normal
+
+
+def sphere_visibility(X, C, margin_mm):
+    """Ground truth for points X (P, 3) on the spheres seen from C (3,): faces C (cosine above
+    ``-FACET_COS`` for a negative margin, above ``+FACET_COS`` for a positive one), and the segment
+    C -> X passes more than ``margin_mm`` outside every sphere (the own one: from C to just before X)."""
+    on = [np.abs(np.linalg.norm(X - c, axis=1) - r) < 0.5 for c, r in (BIG, SMALL)]
+    seen = np.ones(len(X), bool)
+    for (c, r), mine in zip((BIG, SMALL), on, strict=True):
+        cos = np.einsum("pd,pd->p", X - c, C - X) / r / np.linalg.norm(C - X, axis=1)
+        facing = cos > np.copysign(FACET_COS, margin_mm)
+        seen &= ~mine | facing
+        d = X - C
+        s = np.clip(np.einsum("pd,d->p", d, c - C) / np.einsum("pd,pd->p", d, d), 0.0, 1.0)
+        s = np.where(mine, np.minimum(s, 1.0 - 3.0 * margin_mm / np.linalg.norm(d, axis=1)), s)
+        clear = np.linalg.norm(C + s[:, None] * d - c, axis=1) > r + margin_mm
+        seen &= clear
+    return seen
+
+
+def parse_colmap_text(folder):
+    """cameras.txt, images.txt and points3D.txt as plain data, read as COLMAP's text format defines them."""
+    cam = [ln.split() for ln in (folder / "cameras.txt").read_text().splitlines() if not ln.startswith("#")][0]
+    lines = [ln for ln in (folder / "images.txt").read_text().splitlines() if not ln.startswith("#")]
+    images = {}
+    for head, obs in zip(lines[0::2], lines[1::2], strict=True):
+        e = head.split()
+        qw, qx, qy, qz, tx, ty, tz = map(float, e[1:8])
+        o = np.array(obs.split(), float).reshape(-1, 3)
+        images[int(e[0])] = {"name": e[9], "R": Rotation.from_quat([qx, qy, qz, qw]).as_matrix(),
+                             "t_m": np.array([tx, ty, tz]), "xy": o[:, :2], "pid": o[:, 2].astype(int)}
+    points = {}
+    for ln in (folder / "points3D.txt").read_text().splitlines():
+        if ln.startswith("#") or not ln.strip():
+            continue
+        e = ln.split()
+        track = np.array(e[8:], int).reshape(-1, 2)
+        points[int(e[0])] = {"xyz_m": np.array(e[1:4], float), "rgb": np.array(e[4:7], int), "track": track}
+    return cam, images, points
+
+
+def test_colmap_tracks_reproject_their_points_and_respect_occlusion(tmp_path):
+    import cv2
+
+    from recon.export import sample_surface, surface_tracks
+
+    mesh, Ts = two_spheres(), ring_cameras()
+    pts, cols = sample_surface(mesh, 6000, seed=1)
+    tracks = surface_tracks(mesh.vertices_table, mesh.faces, pts, cols, K_TRACKS, DIST, SIZE, Ts)
+    frames = [(f"frame_{k:03d}.jpg", T) for k, T in enumerate(Ts)]
+    export_colmap(K_TRACKS, *SIZE, frames, tmp_path, dist=DIST, tracks=tracks)
+    cam, images, points = parse_colmap_text(tmp_path)
+    assert cam[1] == "FULL_OPENCV" and len(points) == len(tracks.points_table) > 3000
+
+    n_obs = 0
+    for image_id, im in images.items():
+        assert len(im["pid"]) > 500, im["name"]  # every image observes points
+        X_m = np.array([points[p]["xyz_m"] for p in im["pid"]])
+        # OpenCV's own projection (pixel centres at integers) + 0.5 = COLMAP's pixels
+        rvec = cv2.Rodrigues(im["R"])[0]
+        uv = cv2.projectPoints(X_m * 1000.0, rvec, im["t_m"] * 1000.0, K_TRACKS, DIST)[0].reshape(-1, 2) + 0.5
+        assert np.abs(uv - im["xy"]).max() < TEXT_PIX_TOL
+        assert np.all((im["xy"] >= 0) & (im["xy"] < SIZE))
+        # the observed points are those the true geometry lets this camera see
+        T = Ts[image_id - 1]
+        C = -T[:3, :3].T @ T[:3, 3]
+        assert sphere_visibility(X_m * 1000.0, C, margin_mm=-1.0).all(), im["name"]
+        n_obs += len(im["pid"])
+        # each observation's index is where the point's track says it is
+        for idx, p in enumerate(im["pid"]):
+            assert [image_id, idx] in points[p]["track"].tolist()
+    assert n_obs == sum(len(p["track"]) for p in points.values())
+
+    # recall: points clearly visible (1 mm clear of every occluder, inside the image) are observed
+    X_all = np.array([p["xyz_m"] for p in points.values()]) * 1000.0
+    observed = {(i, p) for i, im in images.items() for p in im["pid"]}
+    pids = list(points)
+    for image_id in images:
+        T = Ts[image_id - 1]
+        C = -T[:3, :3].T @ T[:3, 3]
+        uv = cv2.projectPoints(X_all, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K_TRACKS, DIST)[0].reshape(-1, 2)
+        inside = np.all((uv > 1) & (uv < np.array(SIZE) - 2), axis=1)
+        clear = sphere_visibility(X_all, C, margin_mm=1.0) & inside
+        hits = sum((image_id, pids[k]) in observed for k in np.flatnonzero(clear))
+        assert hits >= 0.99 * clear.sum(), (image_id, hits, clear.sum())
+    # camera 0 looks at the big sphere past the small one: a shadow of points it does not observe
+    C0 = -Ts[0][:3, :3].T @ Ts[0][:3, 3]
+    (c, r), (c_small, r_small) = BIG, SMALL
+    on_big = np.abs(np.linalg.norm(X_all - c, axis=1) - r) < 0.5
+    d = X_all - C0
+    s = np.clip(np.einsum("pd,d->p", d, c_small - C0) / np.einsum("pd,pd->p", d, d), 0.0, 1.0)
+    shadow = on_big & (np.linalg.norm(C0 + s[:, None] * d - c_small, axis=1) < r_small - 1.0)
+    assert shadow.sum() > 50 and not any((1, pids[k]) in observed for k in np.flatnonzero(shadow))
+
+
+def test_points_off_the_mesh_or_seen_once_are_dropped():
+    from recon.export import surface_tracks
+
+    mesh, Ts = two_spheres(), ring_cameras()
+    c, r = BIG
+    on_top = c + np.array([0.0, r, 0.0])  # every camera (25 deg up) sees the sphere's top
+    off = c + np.array([0.0, r + 3.0, 0.0])  # 3 mm above the surface
+    pts = np.array([on_top, off])
+    tracks = surface_tracks(mesh.vertices_table, mesh.faces, pts, np.zeros((2, 3), np.uint8), K_TRACKS, DIST,
+                            SIZE, Ts, surface_tol_mm=1.0)
+    assert np.allclose(tracks.points_table, [on_top]) and tracks.visible.all()
+    one_view = surface_tracks(mesh.vertices_table, mesh.faces, pts[:1], np.zeros((1, 3), np.uint8), K_TRACKS,
+                              DIST, SIZE, Ts[:1])
+    assert len(one_view.points_table) == 0  # a track of one view is no track
+
+
+def test_sample_surface_lies_on_the_mesh_with_interpolated_colours():
+    from recon.export import sample_surface
+
+    tm = trimesh.creation.box(extents=(40.0, 100.0, 20.0))
+    colors = np.where(tm.vertices[:, 1:2] > 0, [200, 10, 10], [10, 10, 200]).astype(np.uint8)  # top red, bottom blue
+    pts, cols = sample_surface(TableMesh(np.asarray(tm.vertices), np.asarray(tm.faces, np.int64),
+                                         colors_rgb=colors), 4000, seed=2)
+    half = np.abs(pts) - np.array([20.0, 50.0, 10.0])
+    assert np.all(half < 1e-9) and np.all(np.isclose(half.max(axis=1), 0.0, atol=1e-9))  # on a face
+    top = pts[:, 1] > 49.999
+    assert np.all(cols[top] == [200, 10, 10])
+    assert 0.25 < np.mean(pts[:, 1] > 0) < 0.75  # area-weighted: as many above the middle as below
+
+
+@pytest.mark.parametrize("model_dist", [None, DIST[:4], DIST])
+def test_pycolmap_reads_the_tracks_and_reprojects_them(tmp_path, model_dist):
+    pycolmap = pytest.importorskip("pycolmap")
+    from recon.export import sample_surface, surface_tracks
+
+    mesh, Ts = two_spheres(), ring_cameras()
+    tracks = surface_tracks(mesh.vertices_table, mesh.faces, *sample_surface(mesh, 3000, seed=3), K_TRACKS,
+                            model_dist, SIZE, Ts)
+    export_colmap(K_TRACKS, *SIZE, [(f"f{k}.png", T) for k, T in enumerate(Ts)], tmp_path, dist=model_dist,
+                  tracks=tracks)
+    rec = pycolmap.Reconstruction(str(tmp_path))
+    assert rec.num_points3D() == len(tracks.points_table)
+    assert rec.compute_num_observations() == tracks.visible.sum()
+    cam = rec.cameras[1]
+    for image_id, im in rec.images.items():
+        obs = [p for p in im.points2D if p.has_point3D()]
+        assert len(obs) == tracks.visible[:, image_id - 1].sum() > 0
+        for p in obs[::25]:
+            xyz = rec.points3D[p.point3D_id].xyz
+            uv = cam.img_from_cam(im.cam_from_world() * xyz)  # COLMAP's own camera model
+            assert np.linalg.norm(uv - p.xy) < TEXT_PIX_TOL
+    assert min(pt.track.length() for pt in rec.points3D.values()) >= 2
+
+
+# --- the exports as `turntable reconstruct` writes them: self-contained OUT, video frames, nerfstudio ----
+
+
+@pytest.fixture(scope="module")
+def lens_scene(tmp_path_factory):
+    """8 views 45 degrees apart of the vase through a lens with barrel distortion, ground-truth cameras."""
+    from turntable.synth import SynthOptions, make_sequence
+
+    root = tmp_path_factory.mktemp("lens") / "seq"
+    make_sequence(root, SynthOptions(object="vase", frames=8, step_deg=45.0, width=480, height=360, focal_px=560.0,
+                                     elevation_deg=35.0, distance_mm=430.0, k1=-0.06, jpeg=92, supersample=1))
+    return root
+
+
+def reconstruct_args(inp, cameras, masks, out, *extra) -> list[str]:
+    return ["reconstruct", str(inp), "--cameras", str(cameras), "--masks", str(masks), "--out", str(out),
+            "--resolution", "32", "--max-faces", "5000", "--no-fusion", "--quiet", "--export-colmap",
+            "--export-nerfstudio", *extra]
+
+
+def exported_image_paths(out) -> list:
+    """Every image path the COLMAP model (relative to OUT/images) and transforms.json (relative to OUT) name."""
+    names = [ln.split()[9] for ln in (out / "colmap" / "images.txt").read_text().splitlines()[4::2]]
+    doc = json.loads((out / "transforms.json").read_text())
+    return [out / "images" / n for n in names] + [out / fr["file_path"] for fr in doc["frames"]]
+
+
+@pytest.fixture(scope="module")
+def moved_export(lens_scene, tmp_path_factory):
+    """A reconstruction with both exports, then its OUT moved elsewhere (``mv OUT elsewhere``)."""
+    from turntable.cli import main
+
+    root = tmp_path_factory.mktemp("export")
+    out = root / "scan"
+    assert main(reconstruct_args(lens_scene / "images", lens_scene / "cameras_gt.json", lens_scene / "masks",
+                                 out)) == 0
+    moved = root / "elsewhere" / "scan_moved"
+    moved.parent.mkdir()
+    shutil.move(str(out), str(moved))
+    return moved
+
+
+def test_out_moved_elsewhere_still_finds_every_exported_photo(moved_export, lens_scene):
+    paths = exported_image_paths(moved_export)
+    assert len(paths) == 16 and all(p.is_file() for p in paths), [p for p in paths if not p.is_file()]
+    for p in paths:  # the photos themselves, hard-linked (OUT and the photos share this filesystem)
+        assert os.path.samefile(p, lens_scene / "images" / p.name)
+    summary = json.loads((moved_export / "summary.json").read_text())
+    assert Path(summary["files"]["images"]).name == "images"
+    assert "images" in json.loads((moved_export / ".turntable" / "published.json").read_text())["files"]
+
+
+def test_export_of_a_real_run_has_tracks_on_every_image_that_reproject(moved_export, lens_scene):
+    import cv2
+
+    from turntable.cameras_io import read_cameras
+
+    cam, images, points = parse_colmap_text(moved_export / "colmap")
+    seq = read_cameras(moved_export / "cameras.json")
+    intr, T_by_name = seq.intrinsics, {fp.image: fp.T_cam_table for fp in seq.frames}
+    assert cam[1] == "OPENCV" and np.isclose(float(cam[8]), -0.06, atol=1e-9)  # k1 of the photos
+    assert len(points) > 2000 and min(len(p["track"]) for p in points.values()) >= 2
+    for im in images.values():
+        assert len(im["pid"]) > 300, im["name"]
+        T = T_by_name[im["name"]]
+        X_mm = np.array([points[p]["xyz_m"] for p in im["pid"]]) * 1000.0
+        uv = cv2.projectPoints(X_mm, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], intr.K, intr.dist)[0].reshape(-1, 2)
+        assert np.abs(uv + 0.5 - im["xy"]).max() < OBS_PIX_TOL
+        # depths COLMAP's undistorter takes its depth range from: in front, about the camera's distance
+        depth = X_mm @ T[2, :3] + T[2, 3]
+        assert depth.min() > 300.0 and depth.max() < 560.0
+
+
+def test_copy_images_copies_and_says_so(lens_scene, tmp_path, capsys):
+    from turntable.cli import main
+
+    out = tmp_path / "scan"
+    args = reconstruct_args(lens_scene / "images", lens_scene / "cameras_gt.json", lens_scene / "masks", out,
+                            "--copy-images")
+    args.remove("--quiet")
+    assert main(args) == 0
+    printed = capsys.readouterr()
+    assert "photos for the exports in OUT/images: 8 copied" in printed.out + printed.err
+    for p in exported_image_paths(out):
+        src = lens_scene / "images" / p.name
+        assert not os.path.samefile(p, src) and p.read_bytes() == src.read_bytes()
+
+
+def test_photos_already_in_out_images_are_used_in_place_and_never_removed(lens_scene, tmp_path):
+    from turntable.cli import main
+
+    out = tmp_path / "dataset"
+    shutil.copytree(lens_scene / "images", out / "images")
+    (out / "images" / "notes.txt").write_text("mine")
+    before = sorted(p.name for p in (out / "images").iterdir())
+    for _ in range(2):
+        assert main(reconstruct_args(out / "images", lens_scene / "cameras_gt.json", lens_scene / "masks",
+                                     out)) == 0
+        assert sorted(p.name for p in (out / "images").iterdir()) == before
+    assert all(p.is_file() for p in exported_image_paths(out))
+    assert "images" not in json.loads((out / ".turntable" / "published.json").read_text())["files"]
+
+
+def test_video_input_writes_the_frames_it_names(lens_scene, tmp_path):
+    import cv2
+
+    from turntable.cli import main
+
+    video = tmp_path / "turn.avi"
+    frames = sorted((lens_scene / "images").iterdir())
+    h, w = cv2.imread(str(frames[0])).shape[:2]
+    vw = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 5, (w, h))
+    if not vw.isOpened():
+        pytest.skip("no video writer in this OpenCV build")
+    for f in frames:
+        vw.write(cv2.imread(str(f)))
+    vw.release()
+    # the ground-truth cameras and masks under the video frames' names
+    cams = json.loads((lens_scene / "cameras_gt.json").read_text())
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    for i, fr in enumerate(cams["frames"]):
+        shutil.copy(lens_scene / "masks" / f"{Path(fr['image']).stem}.png", masks / f"turn_{i:05d}.png")
+        fr["image"] = f"turn_{i:05d}.png"
+    (tmp_path / "cams.json").write_text(json.dumps(cams))
+    out = tmp_path / "scan"
+    assert main(reconstruct_args(video, tmp_path / "cams.json", masks, out)) == 0
+    paths = exported_image_paths(out)
+    assert sorted({p.name for p in paths}) == [f"turn_{i:05d}.png" for i in range(8)]
+    cap = cv2.VideoCapture(str(video))
+    for p in paths[:8]:  # the frames as decoded (lossless PNG of what was calibrated)
+        ok, img = cap.read()
+        assert ok and np.array_equal(cv2.imread(str(p)), img), p.name
+
+
+# nerfstudio's dataparser, step by step without torch: nerfstudio/data/dataparsers/nerfstudio_dataparser.py
+# (Nerfstudio._generate_dataparser_outputs, _get_fname, _load_3D_points) and the ray model of
+# nerfstudio/cameras/cameras.py (Cameras.generate_rays: pixel centres at +0.5, camera looking down -z, y up).
+def load_like_nerfstudio(data_dir):
+    from PIL import Image
+
+    meta = json.loads((data_dir / "transforms.json").read_text())
+    fnames = [data_dir / fr["file_path"] for fr in meta["frames"]]
+    order = np.argsort([str(f) for f in fnames])  # "sort the frames by fname"
+    frames = [meta["frames"][i] for i in order]
+    fnames = [fnames[i] for i in order]
+    sizes = []
+    for f in fnames:  # _get_fname opens each image (PIL) to choose the downscale factor
+        with Image.open(f) as im:
+            sizes.append(im.size)
+    assert meta["camera_model"] in {"SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"}
+    K = np.array([[meta["fl_x"], 0, meta["cx"]], [0, meta["fl_y"], meta["cy"]], [0, 0, 1]], float)
+    # camera_utils.get_distortion_params order: k1, k2, k3, k4, p1, p2
+    distortion = [float(meta.get(k, 0.0)) for k in ("k1", "k2", "k3", "k4", "p1", "p2")]
+    c2w = np.array([fr["transform_matrix"] for fr in frames], float)[:, :3, :4]
+    applied = np.eye(4)
+    if "applied_transform" in meta:
+        applied[:3] = np.array(meta["applied_transform"], float)
+    points = None
+    if "ply_file_path" in meta:  # _load_3D_points: open3d point cloud, then transform_matrix @ applied_transform
+        import open3d as o3d
+
+        pcd = o3d.io.read_point_cloud(str(data_dir / meta["ply_file_path"]))
+        points = np.asarray(pcd.points) @ applied[:3, :3].T + applied[:3, 3]
+    return {"names": [f.name for f in fnames], "sizes": sizes, "K": K, "wh": (meta["w"], meta["h"]),
+            "distortion": distortion, "c2w": c2w, "points": points}
+
+
+NS_CENTRE_TOL_M = 1e-9
+NS_DIR_TOL = 1e-9
+
+
+def test_transforms_json_loads_like_nerfstudio_and_matches_cameras_json(moved_export):
+    from turntable.cameras_io import read_cameras
+
+    ns = load_like_nerfstudio(moved_export)
+    seq = read_cameras(moved_export / "cameras.json")
+    intr, by_name = seq.intrinsics, {fp.image: fp.T_cam_table for fp in seq.frames}
+    assert all(s == ns["wh"] == (intr.width, intr.height) for s in ns["sizes"])
+    assert np.allclose(ns["K"][:2, 2] - 0.5, intr.K[:2, 2]) and np.isclose(ns["K"][0, 0], intr.K[0, 0])
+    assert np.allclose(ns["distortion"], [intr.dist[0], intr.dist[1], 0.0, 0.0, intr.dist[2], intr.dist[3]])
+    for name, c2w in zip(ns["names"], ns["c2w"], strict=True):
+        T = by_name[name]
+        R, t = T[:3, :3], T[:3, 3]
+        assert np.allclose(c2w[:3, 3], -R.T @ t / 1000.0, atol=NS_CENTRE_TOL_M)  # camera centre, metres
+        assert np.allclose(-c2w[:3, 2], R.T @ [0.0, 0.0, 1.0], atol=NS_DIR_TOL)  # looks down its -z
+        assert np.allclose(c2w[:3, 1], R.T @ [0.0, -1.0, 0.0], atol=NS_DIR_TOL)  # its +y is image up
+        # nerfstudio's ray through the pixel where we project the model's points passes through them
+        P = ns["points"][::50]
+        p_cam = (P - c2w[:3, 3]) @ c2w[:3, :3]
+        x = ns["K"][0, 0] * p_cam[:, 0] / -p_cam[:, 2] + ns["K"][0, 2]
+        y = ns["K"][1, 2] - ns["K"][1, 1] * p_cam[:, 1] / -p_cam[:, 2]
+        assert np.allclose(np.column_stack([x, y]) - 0.5, project_points(intr.K, T, P * 1000.0), atol=PIX_TOL)
+    # the point cloud is the model, in the cameras' frame and unit: metres, in front of every camera
+    assert ns["points"] is not None and 0.05 < np.ptp(ns["points"][:, 1]) < 0.2

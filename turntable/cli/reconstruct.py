@@ -43,6 +43,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--no-fusion", action="store_true", help="keep the visual hull only (no stereo)")
     parser.add_argument("--export-colmap", action="store_true", help="also write a COLMAP text model to OUT/colmap")
     parser.add_argument("--export-nerfstudio", action="store_true", help="also write OUT/transforms.json")
+    parser.add_argument("--copy-images", action="store_true",
+                        help="with the exports: copy the photos used into OUT/images (default: hard links where OUT "
+                             "is on the photos' filesystem, copies elsewhere; video frames are always written)")
     parser.add_argument("--spawn", action="store_true", help="open the Rerun viewer on the recording")
     parser.add_argument("--overwrite", action="store_true", help="recompute every stage")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress output")
@@ -80,6 +83,7 @@ def options_from_args(args) -> ReconstructOptions:
         max_faces=args.max_faces, every=args.every, frames=args.frames, fusion=not args.no_fusion,
         overwrite=args.overwrite,
         spawn=args.spawn, export_colmap=args.export_colmap, export_nerfstudio=args.export_nerfstudio,
+        copy_images=args.copy_images,
         max_rejections=args.max_rejections, work_size=work_size)
 
 

@@ -26,6 +26,7 @@ class ReconstructOptions:
     spawn: bool = False
     export_colmap: bool = False
     export_nerfstudio: bool = False
+    copy_images: bool = False  # the exports' photos under OUT/images: copies, not hard links
     max_rejections: int | None = None  # None: 0 with masks_dir (trusted), 1 with automatic silhouettes
     work_size: int | None = None  # long side of the work images, pixels; 0: full size; None: the default policy
 
