@@ -309,7 +309,7 @@ def _points2d_line(tracks: ColmapTracks, view: int) -> str:
     """One image's POINTS2D: its observations in point order, COLMAP pixels (+0.5), 1-based point ids."""
     idx = np.flatnonzero(tracks.visible[:, view])
     uv = tracks.uv_px[idx, view] + 0.5
-    return " ".join(map("{:.6f} {:.6f} {}".format, uv[:, 0], uv[:, 1], idx + 1))
+    return " ".join(map("{:.6f} {:.6f} {}".format, uv[:, 0].tolist(), uv[:, 1].tolist(), (idx + 1).tolist()))
 
 
 def _colmap_points(points_table, colors_rgb, tracks: ColmapTracks | None) -> list[str]:
@@ -328,13 +328,13 @@ def _colmap_points(points_table, colors_rgb, tracks: ColmapTracks | None) -> lis
         track_text = [""] * len(P)
     else:
         point2d_idx = np.cumsum(tracks.visible, axis=0) - 1  # (P, V): index in each image's POINTS2D
-        track_text = []
-        for i in range(len(P)):
-            views = np.flatnonzero(tracks.visible[i])
-            track_text.append(" " + " ".join(map("{} {}".format, views + 1, point2d_idx[i, views])))
+        pts, views = np.nonzero(tracks.visible)  # observations in point order, then view order
+        obs = list(map("{} {}".format, (views + 1).tolist(), point2d_idx[pts, views].tolist()))
+        ends = np.cumsum(tracks.visible.sum(axis=1)).tolist()
+        track_text = [" " + " ".join(obs[a:b]) for a, b in zip([0, *ends[:-1]], ends, strict=True)]
     # ERROR 0: every observation is the point's own reprojection (see the module docstring)
     lines += [f"{i} {p[0]:.9g} {p[1]:.9g} {p[2]:.9g} {c[0]} {c[1]} {c[2]} 0{tr}"
-              for i, (p, c, tr) in enumerate(zip(P_m, C, track_text, strict=True), start=1)]
+              for i, (p, c, tr) in enumerate(zip(P_m.tolist(), C.tolist(), track_text, strict=True), start=1)]
     return lines
 
 
