@@ -6,6 +6,7 @@ import json
 import os
 import shutil
 import struct
+import types
 from pathlib import Path
 
 import numpy as np
@@ -549,3 +550,38 @@ def test_transforms_json_loads_like_nerfstudio_and_matches_cameras_json(moved_ex
         assert np.allclose(np.column_stack([x, y]) - 0.5, project_points(intr.K, T, P * 1000.0), atol=PIX_TOL)
     # the point cloud is the model, in the cameras' frame and unit: metres, in front of every camera
     assert ns["points"] is not None and 0.05 < np.ptp(ns["points"][:, 1]) < 0.2
+
+
+def test_photos_other_tools_would_read_differently_are_written_upright_as_png(tmp_path):
+    import cv2
+    from PIL import Image
+
+    from turntable.images import read_image
+    from turntable.stages.export import place_images
+
+    rng = np.random.default_rng(4)
+    src = tmp_path / "photos"
+    src.mkdir()
+    pixels = rng.integers(0, 256, (40, 60, 3)).astype(np.uint8)
+    Image.fromarray(pixels).save(src / "a plain.jpg", quality=95)
+    exif = Image.Exif()
+    exif[0x0112] = 6  # stored landscape, shown rotated 90 degrees clockwise (a portrait phone photo)
+    Image.fromarray(pixels).save(src / "b_rotated.jpg", quality=95, exif=exif.tobytes())
+    Image.fromarray(pixels[:, :, 0]).save(src / "c_grey.png")
+    names = ["a plain.jpg", "b_rotated.jpg", "c_grey.png"]
+    staging = tmp_path / "out" / ".turntable" / "staging.1"
+    staging.mkdir(parents=True)
+    opts = types.SimpleNamespace(input=src, out=tmp_path / "out", copy_images=False, every=1, frames=None)
+    placed = place_images(opts, names, staging)
+    assert placed.folder == "images" and placed.staged
+    assert placed.file_names == {"a plain.jpg": "a_plain.jpg", "b_rotated.jpg": "b_rotated.jpg.png",
+                                 "c_grey.png": "c_grey.png"}  # no whitespace: COLMAP's text format
+    assert placed.counts == {"hard-linked": 1, "copied": 0, "written as PNG": 2}
+    out = staging / "images"
+    assert os.path.samefile(out / "a_plain.jpg", src / "a plain.jpg")
+    for name in names[1:]:  # as calibrated: upright, 3 channels, 8 bit, and PIL (nerfstudio) sees the same
+        written = out / placed.file_names[name]
+        assert np.array_equal(cv2.imread(str(written), cv2.IMREAD_UNCHANGED), read_image(src / name))
+        with Image.open(written) as im:
+            assert im.mode == "RGB" and im.size == read_image(src / name).shape[1::-1]
+    assert read_image(src / "b_rotated.jpg").shape[:2] == (60, 40)  # the rotation was applied
