@@ -108,7 +108,7 @@ def calibrate(src: Path, out: Path) -> tuple[dict, float]:
     seq = read_cameras(out)
     return {"f": seq.intrinsics.focal_px, "size": (seq.intrinsics.width, seq.intrinsics.height),
             "used": sum(fr.ok for fr in seq.frames), "n": len(seq.frames),
-            "exif": (seq.meta.get("exif_focal") or {}).get("focal_px")}, wall
+            "exif": ((seq.diagnostics.exif_focal if seq.diagnostics else None) or {}).get("focal_px")}, wall
 
 
 def main() -> int:

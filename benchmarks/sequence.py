@@ -71,7 +71,7 @@ def metrics(seq, gt) -> dict:
                 pp_err=float(np.max(np.abs(Ke[:2, 2] - Kg[:2, 2]))), k1=(k1e, k1g),
                 ang=(np.median(ang), np.max(ang)) if ang.size else (float("nan"),) * 2,
                 yaw=(np.median(yaw), np.max(yaw)), cen=(np.median(cen), np.max(cen)),
-                rms=seq.meta.get("rms_px", float("nan")), mode=seq.mode)
+                rms=seq.diagnostics.rms_px if seq.diagnostics else float("nan"), mode=seq.mode)
 
 
 def main() -> int:

@@ -14,7 +14,8 @@ import importlib
 
 _EXPORTS = {
     "types": ["CalibrationError", "Intrinsics", "EdgePoints", "TargetObservation", "CalibrationStd",
-              "ViewCalibration", "FramePose", "SequenceCalibration", "image_centre"],
+              "ViewCalibration", "FramePose", "SequenceCalibration", "SequenceDiagnostics",
+              "TurntableDiagnostics", "AngleCheck", "image_centre"],
     "target": ["TargetSpec"],
     "camera": ["make_T", "invert_T", "rotation_from_normal", "plane_homography", "circle_conic", "project_points",
                "circle_points_table", "camera_centre_table", "angle_between_deg"],

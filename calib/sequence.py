@@ -36,8 +36,8 @@ Intrinsics: ``f`` always (unless given); the principal point and radial distorti
 With a fixed camera every frame sees the same table plane from the same direction,
 so every frame images the same circular points and the principal point is
 unobservable (the paper's single-view limitation, not lifted by turning the
-table): it stays at the image centre, and the result's ``meta`` says so. Otherwise
-they are estimated and refused -- kept at their defaults, ``meta["not_estimated"]``
+table): it stays at the image centre, and the result's ``diagnostics`` say so. Otherwise
+they are estimated and refused -- kept at their defaults, ``diagnostics.not_estimated``
 says why -- when their standard deviation from the Jacobian (``cov = s^2 (J^T J)^-1``)
 exceeds :data:`MAX_STD`; ``k1`` then ``k2`` must moreover lower the RMS by
 :data:`MIN_RMS_GAIN` (else a few 1e-3 of spurious k1 absorb edge-detection bias
@@ -76,12 +76,15 @@ from .sequence_model import (
 )
 from .target import TargetSpec
 from .types import (
+    AngleCheck,
     CalibrationError,
     EdgePoints,
     FramePose,
     Intrinsics,
     SequenceCalibration,
+    SequenceDiagnostics,
     TargetObservation,
+    TurntableDiagnostics,
     image_centre,
 )
 
@@ -406,7 +409,7 @@ def calibrate_sequence(
         Why each None observation failed (reported as its status).
     step_deg : float, optional
         Motorised table: frame k is at ``k * step_deg`` (marks, when read, are
-        checked against it; disagreements beyond ``ANGLE_CHECK_DEG`` go to ``meta``).
+        checked against it; disagreements beyond ``ANGLE_CHECK_DEG`` go to ``diagnostics.angle_checks``).
     intrinsics : Intrinsics, optional
         Known camera: edges are undistorted with it and ``K`` is kept.
     mode : {"auto", "turntable", "handheld"}
@@ -430,7 +433,7 @@ def calibrate_sequence(
     Returns
     -------
     SequenceCalibration
-        ``mode`` as chosen, per-frame ``status`` ("ok" or the reason), and ``meta``
+        ``mode`` as chosen, per-frame ``status`` ("ok" or the reason), and ``diagnostics``
         with uncertainties, what was not estimated and why, and angle checks.
 
     Raises
@@ -467,13 +470,59 @@ def calibrate_sequence(
         raise CalibrationError(f"no frame could be calibrated ({summary})")
     obs0 = observations[ok[0]]
     assert obs0 is not None  # a calibrated frame has its observation
-    return _calibrate_from_singles(singles, reasons, ok, names, (obs0.width, obs0.height), spec, step_deg,
-                                   intrinsics, mode, pp, distortion, angle_reader, fit_progress)
+    request = _Request(names=names, size=(obs0.width, obs0.height), step_deg=step_deg, intrinsics=intrinsics,
+                       mode=mode, principal_point_px=pp, distortion=distortion, reader=angle_reader,
+                       report=fit_progress)
+    return _calibrate_from_singles(singles, reasons, ok, request)
 
 
-def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, intr, mode, pp, distortion,
-                            reader=None, report=None):
-    W, H = size
+@dataclass(frozen=True)
+class _Request:
+    """What :func:`calibrate_sequence` was asked for, as its helpers need it."""
+
+    names: list[str]
+    size: tuple[int, int]  # (W, H) pixels
+    step_deg: float | None
+    intrinsics: Intrinsics | None
+    mode: str
+    principal_point_px: tuple | None
+    distortion: str
+    reader: AngleReader | None = None
+    report: FitReport | None = None
+
+
+@dataclass(frozen=True)
+class _Setup:
+    """What every fit of one sequence shares: frame names, the step (None: the marks), the starting
+    state, the intrinsics always free (``base``), whether the stroke is, and the progress report."""
+
+    names: list[str]
+    step_deg: float | None
+    state0: FitState
+    base: tuple[str, ...]
+    free_stroke: bool
+    report: FitReport | None = None
+
+
+@dataclass(frozen=True)
+class _ModelFit:
+    """A fitted model (:func:`_fit_model`): the mode chosen and why, its fit, the frames it used (indices
+    into the sequence), the marks-vs-step checks, the camera centres' median distance off the turntable
+    circle (mm; NaN without one) and the single views' pooled RMS (px)."""
+
+    mode: str
+    why: str
+    fit: JointFit
+    used: list[int]
+    checks: list[AngleCheck]
+    centre_rms: float
+    rms_pooled: float
+
+
+def _calibrate_from_singles(singles, reasons, ok, req: _Request) -> SequenceCalibration:
+    W, H = req.size
+    intr, pp, report = req.intrinsics, req.principal_point_px, req.report
+    base: tuple[str, ...]
     if intr is not None:
         K0, base = intr.K.copy(), ()
     else:
@@ -483,22 +532,21 @@ def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, i
     free_stroke = any(singles[k].edges.has_stroke for k in ok)
     stroke0 = float(np.median([singles[k].stroke_mm for k in ok])) if free_stroke else 0.0
     state0 = FitState(K=K0, dist=np.zeros(5), stroke=stroke0)
-    step_deg, step_note = _step_or_marks(singles, ok, names, step_deg)
-    chosen, why, fit, used, checks, centre_rms, rms_pooled = _fit_model(singles, ok, names, step_deg, mode, state0,
-                                                                        base, free_stroke, report)
-    if mode == "auto" and chosen == "handheld":
-        chosen, why, fit, used, checks, centre_rms, rms_pooled = _retry_turntable(
-            singles, reasons, ok, names, step_deg, state0, base, free_stroke,
-            (chosen, why, fit, used, checks, centre_rms, rms_pooled), report)
+    step_deg, step_note = _step_or_marks(singles, ok, req.names, req.step_deg)
+    setup = _Setup(names=req.names, step_deg=step_deg, state0=state0, base=base, free_stroke=free_stroke,
+                   report=report)
+    model = _fit_model(singles, ok, req.mode, setup)
+    if req.mode == "auto" and model.mode == "handheld":
+        model = _retry_turntable(singles, reasons, ok, setup, model)
         ok = [k for k in ok if singles[k] is not None]
-    bad = _bad_frames(fit, used)
-    if bad and len(used) - len(bad) >= 2:
+    bad = _bad_frames(model.fit, model.used)
+    if bad and len(model.used) - len(bad) >= 2:
         for k, msg in bad.items():
             singles[k], reasons[k] = None, msg
         ok = [k for k in ok if k not in bad]
-        chosen, _, fit, used, checks, centre_rms, rms_pooled = _fit_model(singles, ok, names, step_deg, chosen,
-                                                                          state0, base, free_stroke, report)
-        why += f"; {len(bad)} frame(s) did not fit the shared camera and were dropped"
+        why = model.why + f"; {len(bad)} frame(s) did not fit the shared camera and were dropped"
+        model = replace(_fit_model(singles, ok, model.mode, setup), why=why)
+    chosen, fit, used = model.mode, model.fit, model.used
 
     notes: dict[str, str] = {}
     extra: list[str] = []
@@ -512,22 +560,20 @@ def _calibrate_from_singles(singles, reasons, ok, names, size, spec, step_deg, i
         else:
             extra += ["cx", "cy"]
         fit = _extend(fit, base, tuple(extra), notes, report)
-        if distortion == "auto":
+        if req.distortion == "auto":
             fit = _add_distortion(fit, notes, report)
         else:
             notes["distortion"] = "not estimated (distortion='none')"
     else:
         notes["intrinsics"] = "given: edges undistorted with them, K kept"
-    if reader is not None and REREAD_MARKS:
+    if req.reader is not None and REREAD_MARKS:
         if chosen == "turntable":
-            fit = _reread_marks(fit, used, reader, report)
+            fit = _reread_marks(fit, used, req.reader, report)
         else:
-            _reread_yaw(fit, used, singles, reader)
-    if step_note:
-        why = f"{step_note}; {why}"
-    seq = _result(fit, chosen, why, singles, reasons, ok, used, names, size, intr, notes, checks,
-                  rms_pooled, centre_rms)
-    return replace(seq, meta={**seq.meta, "warnings": [step_note]}) if step_note else seq
+            _reread_yaw(fit, used, singles, req.reader)
+    why = f"{step_note}; {model.why}" if step_note else model.why
+    return _result(replace(model, fit=fit, why=why), singles, reasons, req, notes,
+                   warnings=(step_note,) if step_note else ())
 
 
 def _step_or_marks(singles, ok, names, step_deg) -> tuple[float | None, str]:
@@ -557,7 +603,7 @@ def _step_or_marks(singles, ok, names, step_deg) -> tuple[float | None, str]:
                   f"(they read {read:.1f}° per frame): the marks were used instead of the step")
 
 
-def _retry_turntable(singles, reasons, ok, names, step_deg, state0, base, free_stroke, first, report=None):
+def _retry_turntable(singles, reasons, ok, setup: _Setup, first: _ModelFit) -> _ModelFit:
     """Auto mode chose hand-held: is it one odd frame (upside down, the camera bumped)?
 
     The frames whose camera centre lies far off the circle the others share
@@ -567,41 +613,42 @@ def _retry_turntable(singles, reasons, ok, names, step_deg, state0, base, free_s
     otherwise the first, hand-held, result stands, and its reason says that
     the sequence looked like a turntable but did not fit one.
     """
-    have_step = step_deg is not None
+    have_step = setup.step_deg is not None
     angled = [k for k in ok if singles[k].yaw_ok or have_step]
     if len(angled) < 4:
         return first
-    theta_all, _, _ = _initial_angles(singles, angled, names, step_deg)
+    theta_all, _, _ = _initial_angles(singles, angled, setup.names, setup.step_deg)
     _, per_frame, rows = _circle_fit([singles[k].T for k in angled], [theta_all[k] for k in angled])
     odd = [k for k, r in zip(angled, rows, strict=True) if not r]
-    chosen, why = first[0], first[1]
     if odd and len(odd) <= max(1, len(angled) // 10):
         rest = [k for k in ok if k not in odd]
-        trial = _fit_model(singles, rest, names, step_deg, "auto", state0, base, free_stroke, report)
-        if trial[0] == "turntable":
+        trial = _fit_model(singles, rest, "auto", setup)
+        if trial.mode == "turntable":
             for k, off in zip(angled, per_frame, strict=True):
                 if k in odd:
                     singles[k] = None
                     reasons[k] = (f"does not fit the turntable: its camera is {off:.0f} mm off the circle the "
                                   f"other frames' cameras share (upside down, or the camera moved?)")
-            return (trial[0], trial[1] + f"; {len(odd)} frame(s) off the turntable circle left out", *trial[2:])
-    return (chosen, why + ("; the angle marks were read, so this looked like a turntable: if it is one, "
-                           "look for frames that do not belong (or use --mode turntable)"
-                           if len(angled) >= 3 else ""), *first[2:])
+            return replace(trial, why=trial.why + f"; {len(odd)} frame(s) off the turntable circle left out")
+    return replace(first, why=first.why + ("; the angle marks were read, so this looked like a turntable: if it "
+                                           "is one, look for frames that do not belong (or use --mode turntable)"
+                                           if len(angled) >= 3 else ""))
 
 
-def _fit_model(singles, ok, names, step_deg, mode, state0, base, free_stroke, report=None):
+def _fit_model(singles, ok, mode: str, setup: _Setup) -> _ModelFit:
     """Fit the turntable model where possible, choose the mode, fit the handheld model if chosen."""
+    step_deg, state0, base, free_stroke, report = (setup.step_deg, setup.state0, setup.base, setup.free_stroke,
+                                                   setup.report)
     have_step = step_deg is not None
     angled = [k for k in ok if singles[k].yaw_ok or have_step]
     rms_pooled = float(np.sqrt(np.mean([singles[k].rms_px ** 2 for k in ok])))
     distance = float(np.median([np.linalg.norm(singles[k].T[:3, 3]) for k in ok]))
-    fit_tt, centre_rms, checks = None, float("nan"), []
+    fit_tt, centre_rms, checks = None, float("nan"), list[AngleCheck]()
     if mode == "turntable" and not angled:
         raise CalibrationError("turntable mode needs the turntable angle of each frame: the angle marks "
                                "could not be read in any frame and no step was given")
     if mode == "turntable" or (mode == "auto" and len(angled) >= 3):
-        theta_all, free_theta, checks = _initial_angles(singles, angled, names, step_deg)
+        theta_all, free_theta, checks = _initial_angles(singles, angled, setup.names, step_deg)
         yaw_known = any(singles[k].yaw_ok for k in angled)
         theta0 = np.array([theta_all[k] for k in angled])
         try:
@@ -613,9 +660,9 @@ def _fit_model(singles, ok, names, step_deg, mode, state0, base, free_stroke, re
     if chosen == "turntable":
         if fit_tt is None:
             raise CalibrationError("turntable model could not be fitted")
-        return chosen, why, fit_tt, angled, checks, centre_rms, rms_pooled
+        return _ModelFit(chosen, why, fit_tt, angled, checks, centre_rms, rms_pooled)
     fit = _fit_handheld(singles, ok, state0, base, free_stroke, report)
-    return chosen, why, fit, ok, checks, centre_rms, rms_pooled
+    return _ModelFit(chosen, why, fit, ok, checks, centre_rms, rms_pooled)
 
 
 def _bad_frames(fit: JointFit, used: list[int]) -> dict[int, str]:
@@ -672,7 +719,7 @@ def _initial_angles(singles, angled, names, step_deg):
     """Initial theta (rad, dict by frame), which are free, and marks-vs-step checks."""
     have_step = step_deg is not None
     theta: dict[int, float] = {}
-    checks = []
+    checks: list[AngleCheck] = []
     marked = [k for k in angled if singles[k].yaw_ok]
     ref = marked[0] if marked else angled[0]
     for k in angled:
@@ -685,7 +732,7 @@ def _initial_angles(singles, angled, names, step_deg):
             rel = yaw_of(singles[ref].T[:3, :3].T @ singles[k].T[:3, :3])
             diff = math.degrees(float(wrap_angle(rel - (theta[k] - theta[ref]))))
             if abs(diff) > ANGLE_CHECK_DEG:
-                checks.append({"image": names[k], "marks_minus_step_deg": round(diff, 3)})
+                checks.append(AngleCheck(image=names[k], marks_minus_step_deg=round(diff, 3)))
     free = np.array([(not have_step) and k != ref for k in angled])
     return theta, free, checks
 
@@ -695,10 +742,12 @@ def _num(x) -> float | None:
     return None if not math.isfinite(x) else x
 
 
-def _result(fit: JointFit, mode, why, singles, reasons, ok, used, names, size, intr, notes, checks, rms_pooled,
-            centre_rms) -> SequenceCalibration:
+def _result(model: _ModelFit, singles, reasons, req: _Request, notes: dict[str, str],
+            warnings: tuple[str, ...] = ()) -> SequenceCalibration:
+    fit, mode, used, intr = model.fit, model.mode, model.used, req.intrinsics
     st = fit.state
-    W, H = size
+    W, H = req.size
+    names = req.names
     if intr is not None:
         intrinsics = Intrinsics(K=intr.K, width=W, height=H, dist=intr.dist)
     else:
@@ -721,35 +770,35 @@ def _result(fit: JointFit, mode, why, singles, reasons, ok, used, names, size, i
             frames.append(FramePose(image=names[k], angle_deg=float("nan"), T_cam_table=np.eye(4),
                                     status=reason or "not calibrated"))
     std = fit.std
-    meta = {
-        "mode_reason": why,
-        "rms_px": fit.rms_px,
-        "single_view_rms_px": rms_pooled,
-        "frames_used": len(used),
-        "frames_skipped": sum(1 for f in frames if not f.ok),
-        "focal_std_px": _num(std.get("f", float("nan"))),
-        "principal_point_std_px": [_num(std.get("cx", float("nan"))), _num(std.get("cy", float("nan")))],
-        "dist_std": {k: _num(std[k]) for k in ("k1", "k2") if k in std},
-        "stroke_mm": _num(st.stroke) if fit.problem.free_stroke else None,
-        "stroke_std_mm": _num(std.get("stroke", float("nan"))),
-        "not_estimated": notes,
-        "intrinsics_source": "given" if intr is not None else "estimated",
-    }
+    turntable = None
     if mode == "turntable":
-        assert st.R_cam_axis is not None and st.d_xz is not None
+        assert st.R_cam_axis is not None and st.d_xz is not None and st.t_cam_axis is not None
         C = -st.R_cam_axis.T @ st.t_cam_axis
-        meta["turntable"] = {
-            "pattern_offset_from_axis_mm": [float(st.d_xz[0]), float(st.d_xz[1])],
-            "camera_height_mm": float(C[1]),
-            "camera_radius_mm": float(np.hypot(C[0], C[2])),
-            "camera_centres_off_circle_median_mm": _num(centre_rms),
-        }
         p = fit.problem
         res = [math.degrees(p.mark_residual(i, Ts[i][:3, :3]) / p.mark_w[i])
                for i in range(len(used)) if p.has_mark[i]]
-        if res:
-            meta["turntable"]["marks_residual_deg"] = {"median_abs": float(np.median(np.abs(res))),
-                                                       "max_abs": float(np.max(np.abs(res)))}
-    if checks:
-        meta["angle_checks"] = checks
-    return SequenceCalibration(intrinsics=intrinsics, frames=tuple(frames), mode=mode, meta=meta)
+        turntable = TurntableDiagnostics(
+            pattern_offset_from_axis_mm=(float(st.d_xz[0]), float(st.d_xz[1])),
+            camera_height_mm=float(C[1]),
+            camera_radius_mm=float(np.hypot(C[0], C[2])),
+            camera_centres_off_circle_median_mm=_num(model.centre_rms),
+            marks_residual_deg=(float(np.median(np.abs(res))), float(np.max(np.abs(res)))) if res else None,
+        )
+    diagnostics = SequenceDiagnostics(
+        mode_reason=model.why,
+        rms_px=fit.rms_px,
+        single_view_rms_px=model.rms_pooled,
+        frames_used=len(used),
+        frames_skipped=sum(1 for f in frames if not f.ok),
+        focal_std_px=_num(std.get("f", float("nan"))),
+        principal_point_std_px=(_num(std.get("cx", float("nan"))), _num(std.get("cy", float("nan")))),
+        dist_std={k: _num(std[k]) for k in ("k1", "k2") if k in std},
+        stroke_mm=_num(st.stroke) if fit.problem.free_stroke else None,
+        stroke_std_mm=_num(std.get("stroke", float("nan"))),
+        not_estimated=notes,
+        intrinsics_source="given" if intr is not None else "estimated",
+        turntable=turntable,
+        angle_checks=tuple(model.checks),
+        warnings=warnings,
+    )
+    return SequenceCalibration(intrinsics=intrinsics, frames=tuple(frames), mode=mode, diagnostics=diagnostics)

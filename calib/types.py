@@ -9,7 +9,9 @@ camera: ``p_cam = T_cam_table @ p_table``.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -22,6 +24,9 @@ __all__ = [
     "ViewCalibration",
     "FramePose",
     "SequenceCalibration",
+    "SequenceDiagnostics",
+    "TurntableDiagnostics",
+    "AngleCheck",
     "image_centre",
     "as_points",
 ]
@@ -250,13 +255,110 @@ class FramePose:
 
 
 @dataclass(frozen=True)
+class TurntableDiagnostics:
+    """What the turntable model found besides the poses (``cameras.json`` key ``turntable``).
+
+    Attributes
+    ----------
+    pattern_offset_from_axis_mm : (float, float)
+        ``(d_x, d_z)``: the printed pattern's centre off the turntable axis, table frame, mm.
+    camera_height_mm, camera_radius_mm : float
+        The camera centre above the table plane and from the axis, mm.
+    camera_centres_off_circle_median_mm : float or None
+        The single views' camera centres' median distance from the fitted circle, mm.
+    marks_residual_deg : (float, float) or None
+        Median and largest ``|yaw|`` between the model's poses and the angle marks', degrees
+        (None when no marks were read).
+    """
+
+    pattern_offset_from_axis_mm: tuple[float, float]
+    camera_height_mm: float
+    camera_radius_mm: float
+    camera_centres_off_circle_median_mm: float | None
+    marks_residual_deg: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
+class AngleCheck:
+    """A frame whose angle marks disagree with ``--step-deg`` by more than the tolerance, degrees."""
+
+    image: str
+    marks_minus_step_deg: float
+
+
+@dataclass(frozen=True)
+class SequenceDiagnostics:
+    """How a sequence calibration went: its uncertainties, what it did not estimate and why, warnings.
+
+    Written beside the poses in ``cameras.json`` (one top-level key per field,
+    ``turntable.cameras_io``). ``None`` where a value is not known (fixed, or an
+    older file without it).
+
+    Attributes
+    ----------
+    mode_reason : str
+        Why the mode (turntable / handheld) was chosen.
+    rms_px, single_view_rms_px : float or None
+        RMS edge residual of the joint fit, and pooled over the single views, pixels.
+    frames_used, frames_skipped : int or None
+    focal_std_px : float or None
+        1-sigma of ``f``, pixels (None when ``f`` was given).
+    principal_point_std_px : (float or None, float or None)
+        1-sigma of ``(cx, cy)``, pixels (None where not estimated).
+    dist_std : mapping str -> float or None
+        1-sigma of each estimated distortion term (``"k1"``, ``"k2"``).
+    stroke_mm, stroke_std_mm : float or None
+        Estimated stroke width of the printed rings and its 1-sigma, mm.
+    not_estimated : mapping str -> str
+        Parameter (``"principal_point"``, ``"cx"``, ``"k1"``, ``"distortion"``,
+        ``"intrinsics"``, ...) -> why it was not estimated.
+    intrinsics_source : str or None
+        ``"estimated"`` or ``"given"``.
+    turntable : TurntableDiagnostics or None
+        Turntable mode only.
+    angle_checks : tuple of AngleCheck
+        Frames whose marks contradict ``--step-deg``.
+    warnings : tuple of str
+    exif_focal : mapping or None
+        The photos' EXIF focal length against the calibrated one (``turntable.images.exif_focal_report``).
+    stage_key : str or None
+        The orchestrator's cache key of the calibration that made it (``turntable.stages.cameras``).
+    """
+
+    mode_reason: str = ""
+    rms_px: float | None = None
+    single_view_rms_px: float | None = None
+    frames_used: int | None = None
+    frames_skipped: int | None = None
+    focal_std_px: float | None = None
+    principal_point_std_px: tuple[float | None, float | None] = (None, None)
+    dist_std: Mapping[str, float | None] = field(default_factory=dict)
+    stroke_mm: float | None = None
+    stroke_std_mm: float | None = None
+    not_estimated: Mapping[str, str] = field(default_factory=dict)
+    intrinsics_source: str | None = None
+    turntable: TurntableDiagnostics | None = None
+    angle_checks: tuple[AngleCheck, ...] = ()
+    warnings: tuple[str, ...] = ()
+    exif_focal: Mapping[str, Any] | None = None
+    stage_key: str | None = None
+
+
+@dataclass(frozen=True)
 class SequenceCalibration:
-    """Shared intrinsics and one pose per frame: the content of ``cameras.json``."""
+    """Shared intrinsics and one pose per frame: the content of ``cameras.json``.
+
+    ``diagnostics``: how the calibration went (None for cameras that were not
+    calibrated here, e.g. ``turntable synth``'s ground truth); ``extra``: a
+    file's other top-level keys (the synthetic scene's ``object``, ``target``,
+    ...), kept on read and written back.
+    """
 
     intrinsics: Intrinsics
     frames: tuple[FramePose, ...]
     mode: str = "turntable"  # "turntable" (fixed camera) or "handheld"
-    meta: dict = field(default_factory=dict)
+    diagnostics: SequenceDiagnostics | None = None
+    extra: Mapping[str, Any] = field(default_factory=dict)
 
     def ok_frames(self) -> tuple[FramePose, ...]:
         return tuple(f for f in self.frames if f.ok)

@@ -7,7 +7,7 @@ import pytest
 
 from calib.camera import make_T, rotation_from_normal
 from calib.types import FramePose, Intrinsics, SequenceCalibration
-from turntable.cameras_io import read_cameras, write_cameras
+from turntable.cameras_io import cameras_to_dict, read_cameras, write_cameras
 from turntable.errors import UserError
 
 
@@ -19,7 +19,7 @@ def _seq():
         frames.append(FramePose(image=f"frame_{k:03d}.jpg", angle_deg=10.0 * k, T_cam_table=T, rms_px=0.1 * k))
     frames.append(FramePose(image="bad.jpg", angle_deg=float("nan"), T_cam_table=np.eye(4),
                             status="inner ring not found"))
-    return SequenceCalibration(intrinsics=intr, frames=tuple(frames), meta={"object": "vase"})
+    return SequenceCalibration(intrinsics=intr, frames=tuple(frames), extra={"object": "vase"})
 
 
 def test_round_trip(tmp_path):
@@ -36,7 +36,7 @@ def test_round_trip(tmp_path):
     assert back.frames[3].status == "inner ring not found"
     for a, b in zip(back.frames, seq.frames, strict=True):
         np.testing.assert_allclose(a.T_cam_table, b.T_cam_table)
-    assert back.meta["object"] == "vase"
+    assert back.extra["object"] == "vase"
 
 
 @pytest.mark.parametrize("content,reason", [
@@ -84,3 +84,57 @@ def test_a_failed_frame_keeps_its_placeholder_pose(tmp_path):
     p = tmp_path / "cameras.json"
     write_cameras(p, _seq())  # frame 3 failed: identity pose, status says why
     assert read_cameras(p).frames[3].status == "inner ring not found"
+
+
+def _calibrated_dict() -> dict:
+    """A cameras.json as calibrate-sequence wrote it before diagnostics were typed (keys in that order)."""
+    d = cameras_to_dict(_seq())
+    del d["object"]
+    d.update({
+        "mode_reason": "fixed camera", "rms_px": 0.066, "single_view_rms_px": 0.067, "frames_used": 3,
+        "frames_skipped": 1, "focal_std_px": 0.11, "principal_point_std_px": [None, None], "dist_std": {"k1": 0.001},
+        "stroke_mm": 3.05, "stroke_std_mm": None, "not_estimated": {"principal_point": "not estimated: ..."},
+        "intrinsics_source": "estimated",
+        "turntable": {"pattern_offset_from_axis_mm": [0.1, -0.2], "camera_height_mm": 225.0,
+                      "camera_radius_mm": 389.8, "camera_centres_off_circle_median_mm": 0.03,
+                      "marks_residual_deg": {"median_abs": 0.01, "max_abs": 0.05}},
+        "angle_checks": [{"image": "frame_001.jpg", "marks_minus_step_deg": 1.5}],
+        "warnings": ["--step-deg 10 contradicts the angle marks"],
+        "exif_focal": {"focal_35mm": 26.0, "focal_px": 1000.0, "disagrees": True},
+        "stage_key": "abc123",
+        "object": "vase",
+    })
+    return d
+
+
+def test_diagnostics_are_typed_and_written_back_byte_for_byte(tmp_path):
+    """An older cameras.json (diagnostics as plain keys) reads into SequenceDiagnostics and writes back the
+    same bytes; a file without them (synth's ground truth) has no diagnostics."""
+    p = tmp_path / "cameras.json"
+    text = json.dumps(_calibrated_dict(), indent=1) + "\n"
+    p.write_text(text)
+    seq = read_cameras(p)
+    diag = seq.diagnostics
+    assert diag.mode_reason == "fixed camera" and diag.focal_std_px == 0.11 and diag.frames_skipped == 1
+    assert diag.turntable.pattern_offset_from_axis_mm == (0.1, -0.2)
+    assert diag.turntable.marks_residual_deg == (0.01, 0.05)
+    assert diag.angle_checks[0].image == "frame_001.jpg" and diag.angle_checks[0].marks_minus_step_deg == 1.5
+    assert diag.warnings == ("--step-deg 10 contradicts the angle marks",)
+    assert diag.exif_focal["disagrees"] and diag.stage_key == "abc123"
+    assert seq.extra == {"object": "vase"}
+    q = tmp_path / "again.json"
+    write_cameras(q, seq)
+    assert q.read_text() == text
+    write_cameras(p, _seq())
+    assert read_cameras(p).diagnostics is None
+
+
+def test_an_older_file_without_some_diagnostics_still_reads(tmp_path):
+    d = _calibrated_dict()
+    for key in ("single_view_rms_px", "turntable", "intrinsics_source", "warnings", "stage_key"):
+        del d[key]
+    p = tmp_path / "cameras.json"
+    p.write_text(json.dumps(d))
+    diag = read_cameras(p).diagnostics
+    assert diag.single_view_rms_px is None and diag.turntable is None and diag.intrinsics_source is None
+    assert diag.warnings == () and diag.stage_key is None and diag.rms_px == 0.066

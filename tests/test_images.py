@@ -271,9 +271,10 @@ def test_portrait_jpeg_and_heic_calibrate_like_the_upright_png(tmp_path, upright
         f[name] = seq.intrinsics.focal_px
         if name != "png":
             assert f"EXIF: {f35} mm equivalent" in out and "disagree" not in out
-            assert seq.meta["exif_focal"]["focal_35mm"] == f35 and not seq.meta["exif_focal"]["disagrees"]
+            exif = seq.diagnostics.exif_focal
+            assert exif["focal_35mm"] == f35 and not exif["disagrees"]
         else:
-            assert "EXIF" not in out and "exif_focal" not in seq.meta
+            assert "EXIF" not in out and seq.diagnostics.exif_focal is None
     assert abs(f["png"] / F_TRUE_PX - 1) < 0.005
     for name in ("jpeg6", "jpeg8", "heic6"):
         assert abs(f[name] / f["png"] - 1) < 0.0005, (name, f)  # 0.05 %: the bar
@@ -291,7 +292,7 @@ def test_exif_focal_disagreement_is_reported(tmp_path, upright_photos, capsys):
     pct = 100 * (seq.intrinsics.focal_px / f_exif - 1)
     assert pct > 50
     assert f"disagree by {pct:+.1f} % (more than 5 %)" in out
-    assert seq.meta["exif_focal"]["disagrees"]
+    assert seq.diagnostics.exif_focal["disagrees"]
 
 
 def test_calibrate_sequence_takes_a_video(tmp_path, upright_photos, capsys):

@@ -149,11 +149,11 @@ def test_turntable_joint_fit_recovers_camera_axis_and_angles(monkeypatch):
     assert np.max(np.abs(np.linalg.norm(c_est, axis=1) - np.linalg.norm(c_true, axis=1))) < CENTRE_TOL_MM
     err = angle_errors_deg(seq, theta)
     assert np.median(err) < 0.05 and np.max(err) < 0.2
-    off = seq.meta["turntable"]["pattern_offset_from_axis_mm"]
+    off = seq.diagnostics.turntable.pattern_offset_from_axis_mm
     assert np.allclose(off, [2.0, -1.5], atol=0.3)
-    assert "unobservable" in seq.meta["not_estimated"]["principal_point"]
-    assert seq.meta["not_estimated"]["distortion"]
-    assert abs(seq.meta["stroke_mm"] - TRUE_STROKE_MM) < 0.05
+    assert "unobservable" in seq.diagnostics.not_estimated["principal_point"]
+    assert seq.diagnostics.not_estimated["distortion"]
+    assert abs(seq.diagnostics.stroke_mm - TRUE_STROKE_MM) < 0.05
 
 
 def test_turntable_step_fixes_angles_and_flags_disagreeing_marks(monkeypatch):
@@ -170,7 +170,7 @@ def test_turntable_step_fixes_angles_and_flags_disagreeing_marks(monkeypatch):
     seq = cs.calibrate_sequence(obs, None, SPEC, step_deg=30.0, mode="turntable",
                                 angle_reader=fake_reader(Ts_bad, rng))
     assert [f.angle_deg for f in seq.frames][:3] == pytest.approx([0.0, 30.0, 60.0])
-    flagged = [c["image"] for c in seq.meta.get("angle_checks", [])]
+    flagged = [c.image for c in seq.diagnostics.angle_checks]
     assert flagged == ["frame_005"]
 
 
@@ -184,11 +184,11 @@ def test_a_step_the_marks_contradict_is_not_used_and_the_warning_says_so(monkeyp
     monkeypatch.setattr(cs, "single_view", single)
     seq = cs.calibrate_sequence(obs, None, SPEC, step_deg=10.0, angle_reader=fake_reader(Ts, rng))
     assert seq.mode == "turntable"
-    [warning] = seq.meta["warnings"]
+    [warning] = seq.diagnostics.warnings
     assert "--step-deg 10 contradicts the angle marks" in warning and "30.0° per frame" in warning
-    assert warning in seq.meta["mode_reason"]
+    assert warning in seq.diagnostics.mode_reason
     assert [f.angle_deg for f in seq.frames][:3] == pytest.approx([0.0, 30.0, 60.0], abs=0.2)  # the marks' 30
-    assert "angle_checks" not in seq.meta  # the step was dropped, so nothing is checked against it
+    assert not seq.diagnostics.angle_checks  # the step was dropped, so nothing is checked against it
 
 
 # --------------------------------------------------------------------------- handheld
@@ -201,7 +201,7 @@ def test_handheld_sweep_estimates_principal_point_and_k1(monkeypatch):
     assert abs(seq.intrinsics.focal_px / K[0, 0] - 1) < 0.005
     assert np.all(np.abs(seq.intrinsics.principal_point_px - K[:2, 2]) < 2.0)  # px
     assert abs(seq.intrinsics.dist[0] - dist[0]) < 0.01
-    assert seq.meta["dist_std"]["k1"] < 0.005
+    assert seq.diagnostics.dist_std["k1"] < 0.005
     assert np.isnan(seq.frames[0].angle_deg)
     assert np.max(centre_errors_mm(seq, Ts)) < 2.0
 
@@ -214,7 +214,7 @@ def test_same_tilt_views_refuse_the_principal_point(monkeypatch):
     seq = run_synthetic(monkeypatch, rng, K, np.zeros(5), Ts, mode="handheld", distortion="none",
                         max_points_per_edge=100)
     assert seq.mode == "handheld"
-    assert "unconstrained" in seq.meta["not_estimated"]["cy"]
+    assert "unconstrained" in seq.diagnostics.not_estimated["cy"]
     assert seq.intrinsics.principal_point_px[1] == (H - 1) / 2
     assert abs(seq.intrinsics.focal_px / K[0, 0] - 1) < 2e-3
 
@@ -240,7 +240,7 @@ def test_failed_frames_are_reported_and_the_rest_calibrate(monkeypatch):
     assert status[2] == "inner ring not found"
     assert status[5].startswith("angle marks unreadable")
     assert sum(f.ok for f in seq.frames) == 6 and seq.mode == "turntable"
-    assert seq.meta["frames_skipped"] == 2
+    assert seq.diagnostics.frames_skipped == 2
 
 
 def test_nothing_calibrates_raises():
@@ -257,8 +257,8 @@ def test_given_intrinsics_are_kept_and_undistort_the_edges(monkeypatch):
     intr = Intrinsics(K=K, width=W, height=H, dist=dist)
     seq = run_synthetic(monkeypatch, rng, K, dist, Ts, intrinsics=intr, max_points_per_edge=100)
     assert np.array_equal(seq.intrinsics.K, K) and np.array_equal(seq.intrinsics.dist, dist)
-    assert seq.meta["intrinsics_source"] == "given"
-    assert seq.meta["rms_px"] < 0.2  # the distortion was removed: the model fits to the noise level
+    assert seq.diagnostics.intrinsics_source == "given"
+    assert seq.diagnostics.rms_px < 0.2  # the distortion was removed: the model fits to the noise level
 
 
 # --------------------------------------------------------------------------- CLI
@@ -378,11 +378,11 @@ def test_one_upside_down_frame_is_left_out_not_a_switch_to_handheld(monkeypatch)
     flip = make_T(np.diag([-1.0, -1.0, 1.0]), np.zeros(3))  # 180 deg about the camera's z axis
     Ts[5] = flip @ Ts[5]
     seq = run_synthetic(monkeypatch, rng, K, np.zeros(5), Ts, distortion="none")
-    assert seq.mode == "turntable", seq.meta["mode_reason"]
+    assert seq.mode == "turntable", seq.diagnostics.mode_reason
     assert seq.frames[5].status.startswith("does not fit the turntable"), seq.frames[5].status
     assert [k for k, f in enumerate(seq.frames) if not f.ok] == [5]
     assert abs(seq.intrinsics.focal_px / K[0, 0] - 1) < 1e-3
-    assert "off the turntable circle left out" in seq.meta["mode_reason"]
+    assert "off the turntable circle left out" in seq.diagnostics.mode_reason
 
 
 # --------------------------------------------------------------------------- the joint fit's linear algebra

@@ -153,7 +153,7 @@ def test_sequence_files_and_cameras_round_trip(tmp_path):
         assert img.shape == (72, 96, 3) and mask.dtype == np.uint8 and set(np.unique(mask)) <= {0, 255}
         assert mask.any()
     assert seq.frames[0].angle_deg == 0.0 and seq.frames[1].angle_deg != 30.0  # jittered
-    assert seq.meta["object"] == "vase" and seq.meta["target"]["r_outer_mm"] == 80.0
+    assert seq.extra["object"] == "vase" and seq.extra["target"]["r_outer_mm"] == 80.0
     import trimesh
     gt = trimesh.load_mesh(out / "object_gt.ply")
     assert gt.visual.kind == "vertex" and len(gt.vertices) > 1000

@@ -10,7 +10,12 @@
      ...}
 
 ``T_cam_table`` maps table points (mm) into the camera frame (OpenCV axes).
-Extra top-level keys (``meta``) are kept on read and written back.
+The calibration's diagnostics (:class:`calib.types.SequenceDiagnostics`) are
+top-level keys beside these, one per field (``mode_reason``, ``rms_px``,
+``focal_std_px``, ..., ``turntable``: {...}, ``warnings``, ``exif_focal``,
+``stage_key``); a file without any of them (``turntable synth``'s ground truth)
+has no diagnostics. Other top-level keys are kept on read (``extra``) and
+written back.
 """
 
 from __future__ import annotations
@@ -22,14 +27,26 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.types import FramePose, Intrinsics, SequenceCalibration
+from calib.types import (
+    AngleCheck,
+    FramePose,
+    Intrinsics,
+    SequenceCalibration,
+    SequenceDiagnostics,
+    TurntableDiagnostics,
+)
 from recon.fileio import atomic_write_bytes
 
 from .errors import UserError
 
-__all__ = ["write_cameras", "read_cameras", "cameras_to_dict", "cameras_from_dict", "atomic_write_text"]
+__all__ = ["write_cameras", "read_cameras", "cameras_to_dict", "cameras_from_dict", "diagnostics_to_dict",
+           "diagnostics_from_dict", "atomic_write_text"]
 
 _RESERVED = {"units", "intrinsics", "frames", "mode"}
+#: the diagnostics' keys, in the order they are written; the first twelve always are
+_DIAGNOSTICS = ("mode_reason", "rms_px", "single_view_rms_px", "frames_used", "frames_skipped", "focal_std_px",
+                "principal_point_std_px", "dist_std", "stroke_mm", "stroke_std_mm", "not_estimated",
+                "intrinsics_source", "turntable", "angle_checks", "warnings", "exif_focal", "stage_key")
 
 
 def _num(x: float):
@@ -59,10 +76,92 @@ def cameras_to_dict(seq: SequenceCalibration) -> dict:
             for f in seq.frames
         ],
     }
-    for k, v in seq.meta.items():
-        if k not in _RESERVED:
+    if seq.diagnostics is not None:
+        d.update(diagnostics_to_dict(seq.diagnostics))
+    for k, v in seq.extra.items():
+        if k not in _RESERVED and k not in d:
             d[k] = v
     return d
+
+
+def diagnostics_to_dict(diag: SequenceDiagnostics) -> dict:
+    """The diagnostics' ``cameras.json`` keys: the twelve of every calibration, then ``turntable``,
+    ``angle_checks``, ``warnings``, ``exif_focal`` and ``stage_key`` where they have a value."""
+    d: dict = {
+        "mode_reason": diag.mode_reason,
+        "rms_px": diag.rms_px,
+        "single_view_rms_px": diag.single_view_rms_px,
+        "frames_used": diag.frames_used,
+        "frames_skipped": diag.frames_skipped,
+        "focal_std_px": diag.focal_std_px,
+        "principal_point_std_px": list(diag.principal_point_std_px),
+        "dist_std": dict(diag.dist_std),
+        "stroke_mm": diag.stroke_mm,
+        "stroke_std_mm": diag.stroke_std_mm,
+        "not_estimated": dict(diag.not_estimated),
+        "intrinsics_source": diag.intrinsics_source,
+    }
+    tt = diag.turntable
+    if tt is not None:
+        d["turntable"] = {
+            "pattern_offset_from_axis_mm": list(tt.pattern_offset_from_axis_mm),
+            "camera_height_mm": tt.camera_height_mm,
+            "camera_radius_mm": tt.camera_radius_mm,
+            "camera_centres_off_circle_median_mm": tt.camera_centres_off_circle_median_mm,
+        }
+        if tt.marks_residual_deg is not None:
+            d["turntable"]["marks_residual_deg"] = {"median_abs": tt.marks_residual_deg[0],
+                                                    "max_abs": tt.marks_residual_deg[1]}
+    if diag.angle_checks:
+        d["angle_checks"] = [{"image": c.image, "marks_minus_step_deg": c.marks_minus_step_deg}
+                             for c in diag.angle_checks]
+    if diag.warnings:
+        d["warnings"] = list(diag.warnings)
+    if diag.exif_focal is not None:
+        d["exif_focal"] = dict(diag.exif_focal)
+    if diag.stage_key is not None:
+        d["stage_key"] = diag.stage_key
+    return d
+
+
+def diagnostics_from_dict(d: dict) -> SequenceDiagnostics | None:
+    """The diagnostics in a ``cameras.json`` object (None when it has none of their keys); keys it lacks
+    (an older file) are None or empty. Raises KeyError, TypeError or ValueError on malformed values."""
+    if not any(k in d for k in _DIAGNOSTICS):
+        return None
+    tt = d.get("turntable")
+    turntable = None
+    if tt is not None:
+        off = tt["pattern_offset_from_axis_mm"]
+        marks = tt.get("marks_residual_deg")
+        turntable = TurntableDiagnostics(
+            pattern_offset_from_axis_mm=(float(off[0]), float(off[1])),
+            camera_height_mm=float(tt["camera_height_mm"]),
+            camera_radius_mm=float(tt["camera_radius_mm"]),
+            camera_centres_off_circle_median_mm=tt.get("camera_centres_off_circle_median_mm"),
+            marks_residual_deg=(float(marks["median_abs"]), float(marks["max_abs"])) if marks else None,
+        )
+    pp = d.get("principal_point_std_px") or [None, None]
+    return SequenceDiagnostics(
+        mode_reason=str(d.get("mode_reason", "")),
+        rms_px=d.get("rms_px"),
+        single_view_rms_px=d.get("single_view_rms_px"),
+        frames_used=d.get("frames_used"),
+        frames_skipped=d.get("frames_skipped"),
+        focal_std_px=d.get("focal_std_px"),
+        principal_point_std_px=(pp[0], pp[1]),
+        dist_std=dict(d.get("dist_std") or {}),
+        stroke_mm=d.get("stroke_mm"),
+        stroke_std_mm=d.get("stroke_std_mm"),
+        not_estimated=dict(d.get("not_estimated") or {}),
+        intrinsics_source=d.get("intrinsics_source"),
+        turntable=turntable,
+        angle_checks=tuple(AngleCheck(image=str(c["image"]), marks_minus_step_deg=float(c["marks_minus_step_deg"]))
+                           for c in d.get("angle_checks") or ()),
+        warnings=tuple(str(w) for w in d.get("warnings") or ()),
+        exif_focal=d.get("exif_focal"),
+        stage_key=d.get("stage_key"),
+    )
 
 
 def cameras_from_dict(d: dict, source: str = "cameras.json") -> SequenceCalibration:
@@ -82,13 +181,15 @@ def cameras_from_dict(d: dict, source: str = "cameras.json") -> SequenceCalibrat
             frames.append(FramePose(image=str(f["image"]), angle_deg=float("nan") if a is None else float(a),
                                     T_cam_table=T, rms_px=float("nan") if r is None else float(r),
                                     status=str(f.get("status", "ok"))))
+        diagnostics = diagnostics_from_dict(d)
     except UserError:
         raise
     except (KeyError, TypeError, ValueError) as exc:
         raise UserError(f"{source}: not a valid cameras.json ({type(exc).__name__}: {exc})") from None
     _check_sense(intr, frames, source)
-    meta = {k: v for k, v in d.items() if k not in _RESERVED}
-    return SequenceCalibration(intrinsics=intr, frames=tuple(frames), mode=str(d.get("mode", "turntable")), meta=meta)
+    extra = {k: v for k, v in d.items() if k not in _RESERVED and k not in _DIAGNOSTICS}
+    return SequenceCalibration(intrinsics=intr, frames=tuple(frames), mode=str(d.get("mode", "turntable")),
+                               diagnostics=diagnostics, extra=extra)
 
 
 def _check_sense(intr: Intrinsics, frames: list[FramePose], source: str) -> None:

@@ -12,9 +12,11 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
-from calib.types import SequenceCalibration
+from calib.types import SequenceCalibration, SequenceDiagnostics
 
 from ..cameras_io import write_cameras
 from ..errors import UserError
@@ -56,7 +58,7 @@ def _fmt(x, spec: str, none: str = "-") -> str:
     return none if x is None or (isinstance(x, float) and not math.isfinite(x)) else format(x, spec)
 
 
-def _exif_text(exif: dict | None) -> str:
+def _exif_text(exif: Mapping[str, Any] | None) -> str:
     if not exif:
         return ""
     return (f"   (EXIF: {exif['focal_35mm']:g} mm equivalent = {exif['focal_px']:.1f} px; "
@@ -65,47 +67,49 @@ def _exif_text(exif: dict | None) -> str:
 
 def summary_table(seq: SequenceCalibration) -> str:
     """Human summary: per-frame lines, then the shared camera with 1-sigma."""
-    m = seq.meta
+    m = seq.diagnostics if seq.diagnostics is not None else SequenceDiagnostics()
     lines = [f"{'image':<28} {'angle°':>8} {'rms px':>7}  status", "-" * 60]
     for f in seq.frames:
         lines.append(f"{Path(f.image).name[:28]:<28} {_fmt(f.angle_deg, '8.2f'):>8} "
                      f"{_fmt(f.rms_px, '7.3f'):>7}  {f.status}")
     K = seq.intrinsics.K
-    pp_std = m.get("principal_point_std_px") or [None, None]
+    pp_std = m.principal_point_std_px
+    used = "?" if m.frames_used is None else m.frames_used
+    skipped = "?" if m.frames_skipped is None else m.frames_skipped
     lines += ["",
-              f"mode            {seq.mode} ({m.get('mode_reason', '')})",
-              f"frames          {m.get('frames_used', '?')} used, {m.get('frames_skipped', '?')} skipped",
-              f"focal length    {K[0, 0]:.2f} px ± {_fmt(m.get('focal_std_px'), '.2f', 'fixed')}"
-              + _exif_text(m.get("exif_focal")),
+              f"mode            {seq.mode} ({m.mode_reason})",
+              f"frames          {used} used, {skipped} skipped",
+              f"focal length    {K[0, 0]:.2f} px ± {_fmt(m.focal_std_px, '.2f', 'fixed')}"
+              + _exif_text(m.exif_focal),
               f"principal point ({K[0, 2]:.2f}, {K[1, 2]:.2f}) px ± "
               f"({_fmt(pp_std[0], '.2f', 'fixed')}, {_fmt(pp_std[1], '.2f', 'fixed')})"]
     dist = seq.intrinsics.dist
     if dist.size:
-        ds = m.get("dist_std", {})
+        ds = m.dist_std
         lines.append("distortion      " + ", ".join(
             f"{n} {dist[i]:+.4f} ± {_fmt(ds.get(n), '.4f', 'fixed')}" for i, n in enumerate(("k1", "k2"))
             if i < dist.size))
-    if m.get("stroke_mm") is not None:
-        lines.append(f"stroke width    {m['stroke_mm']:.3f} mm ± {_fmt(m.get('stroke_std_mm'), '.3f')}")
-    lines.append(f"RMS             {_fmt(m.get('rms_px'), '.3f')} px "
-                 f"(single views {_fmt(m.get('single_view_rms_px'), '.3f')} px)")
-    tt = m.get("turntable")
+    if m.stroke_mm is not None:
+        lines.append(f"stroke width    {m.stroke_mm:.3f} mm ± {_fmt(m.stroke_std_mm, '.3f')}")
+    lines.append(f"RMS             {_fmt(m.rms_px, '.3f')} px "
+                 f"(single views {_fmt(m.single_view_rms_px, '.3f')} px)")
+    tt = m.turntable
     if tt:
-        off = tt["pattern_offset_from_axis_mm"]
-        lines.append(f"turntable       camera {tt['camera_radius_mm']:.1f} mm from the axis, "
-                     f"{tt['camera_height_mm']:.1f} mm above the table; pattern off the axis by "
+        off = tt.pattern_offset_from_axis_mm
+        lines.append(f"turntable       camera {tt.camera_radius_mm:.1f} mm from the axis, "
+                     f"{tt.camera_height_mm:.1f} mm above the table; pattern off the axis by "
                      f"({off[0]:.2f}, {off[1]:.2f}) mm")
-    exif = m.get("exif_focal") or {}
+    exif = dict(m.exif_focal or {})
     for line in (exif.get("note"), focal_warning(K[0, 0], exif or None)):
         if line:
             lines.append(f"warning         {line}")
-    for name, why in m.get("not_estimated", {}).items():
+    for name, why in m.not_estimated.items():
         lines.append(f"note            {name}: {why}")
-    for w in m.get("warnings", []):
+    for w in m.warnings:
         lines.append(f"warning         {w}")
-    for c in m.get("angle_checks", []):
-        lines.append(f"warning         {c['image']}: marks and --step-deg disagree by "
-                     f"{c['marks_minus_step_deg']:+.2f}°")
+    for c in m.angle_checks:
+        lines.append(f"warning         {c.image}: marks and --step-deg disagree by "
+                     f"{c.marks_minus_step_deg:+.2f}°")
     return "\n".join(lines)
 
 
@@ -144,7 +148,8 @@ def run(args) -> int:
     if paths is not None:
         exif = exif_focal_report(paths, seq.intrinsics.width, seq.intrinsics.height, seq.intrinsics.focal_px)
         if exif is not None:
-            seq = dataclasses.replace(seq, meta={**seq.meta, "exif_focal": exif})
+            diagnostics = seq.diagnostics if seq.diagnostics is not None else SequenceDiagnostics()
+            seq = dataclasses.replace(seq, diagnostics=dataclasses.replace(diagnostics, exif_focal=exif))
     for f in seq.frames:
         if not f.ok:
             where = src / f.image if paths is not None else f"{src} (frame {f.image})"

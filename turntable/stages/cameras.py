@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.types import SequenceCalibration
+from calib.types import SequenceCalibration, SequenceDiagnostics
 
 from ..cameras_io import read_cameras, write_cameras
 from ..errors import UserError
@@ -37,7 +37,7 @@ def known_cameras(opts: ReconstructOptions, progress: Progress, key: str,
             seq = read_cameras(cam_path)
         except UserError:
             return None, {}
-        if seq.meta.get("stage_key") == key:
+        if seq.diagnostics is not None and seq.diagnostics.stage_key == key:
             progress.note("cameras: reusing cameras.json")
             return seq, conics_from_arrays(hit)
     return None, {}
@@ -64,9 +64,10 @@ def calibrate(loaded, opts: ReconstructOptions, progress: Progress, key: str,
                                      progress=tick, fit_progress=fit_reporter(progress, "cameras: joint fit"))
         except UserError as exc:
             raise UserError(f"{opts.input}: {exc}") from None
-    for warning in seq.meta.get("warnings", []):
+    diagnostics = seq.diagnostics if seq.diagnostics is not None else SequenceDiagnostics()
+    for warning in diagnostics.warnings:
         progress.note(f"cameras: WARNING: {warning}")
-    seq = replace(seq, meta={**seq.meta, "stage_key": key})
+    seq = replace(seq, diagnostics=replace(diagnostics, stage_key=key))
     names = [n for n, o in zip(loaded.names, observations, strict=True) if o is not None]
     conics = np.array([[o.conics["outer"], o.conics["inner"]] for o in observations if o is not None])
     conics = conics.reshape(-1, 2, 3, 3)

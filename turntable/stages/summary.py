@@ -25,8 +25,8 @@ def summary(seq, names, skipped, mesh, progress, fusion_note, files) -> dict:
     from ..frames import frame_name
 
     tm = trimesh.Trimesh(mesh.vertices_table, mesh.faces, process=False)
-    meta = seq.meta
-    std_f = meta.get("focal_std_px")
+    diagnostics = seq.diagnostics
+    std_f = diagnostics.focal_std_px if diagnostics is not None else None
 
     def num(x):
         return None if x is None or (isinstance(x, float) and math.isnan(x)) else x
@@ -44,7 +44,7 @@ def summary(seq, names, skipped, mesh, progress, fusion_note, files) -> dict:
                  "watertight": bool(tm.is_watertight), "volume_cm3": float(tm.volume) / 1000.0,
                  "extent_mm": (tm.bounds[1] - tm.bounds[0]).tolist()},
         "fusion": fusion_note,
-        "warnings": list(meta.get("warnings", [])),
+        "warnings": list(diagnostics.warnings) if diagnostics is not None else [],
         "time_s": {k: round(v, 2) for k, v in progress.times_s.items()},
         "files": {k: frame_name(str(v)) for k, v in files.items()},  # strict JSON whatever the path
     }

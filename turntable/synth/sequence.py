@@ -303,7 +303,7 @@ def make_sequence(out_dir: str | os.PathLike, options: SynthOptions, overwrite: 
                                 "about +Y relative to frame 0 (counter-clockwise seen from above)",
         }
         seq = SequenceCalibration(intrinsics=intr, frames=tuple(frames),
-                                  mode="handheld" if options.handheld else "turntable", meta=meta)
+                                  mode="handheld" if options.handheld else "turntable", extra=meta)
         write_cameras(tmp / "cameras_gt.json", seq)
         mesh.export(tmp / "object_gt.ply")
         scene_info = {
