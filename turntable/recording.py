@@ -3,14 +3,24 @@
 Layout (table frame, millimetres, +Y up — ``rr.ViewCoordinates.RIGHT_HAND_Y_UP``):
 
 - ``world/target``: the two rings in 3D (static).
-- ``world/camera``: on the ``frame`` timeline, the camera of that frame:
-  ``Transform3D`` (parent-from-child, i.e. table-from-camera) and ``Pinhole``
-  (OpenCV axes, RDF); ``world/camera/image`` the photo (JPEG-encoded),
+- ``world/mesh``: the final coloured mesh (static); ``world/hull`` (the carved
+  visual hull) and ``world/points`` (the fused stereo points), static, present
+  but hidden in the default blueprint (tick them in the blueprint panel).
+- ``world/cameras/frame_000`` …: every used frame's camera, static — ``Transform3D``
+  (parent-from-child, i.e. table-from-camera) and ``Pinhole`` (OpenCV axes, RDF)
+  for a small copy of the photo, ``…/image``, drawn inside the frustum. The
+  number is the frame's index on the ``frame`` timeline.
+- ``world/camera``: on the ``frame`` timeline, the current frame's camera, drawn
+  larger: ``world/camera/image`` the photo (work size, JPEG-encoded),
   ``world/camera/image/ellipses`` the detected ring conics and
   ``world/camera/image/silhouette`` the silhouette outline.
-- ``world/hull``, ``world/points``, ``world/mesh``: static results.
+- ``calibration/edge_rms_px``, ``calibration/angle_deg``: on the ``frame``
+  timeline, what calibration measured for each frame (``rr.Scalars``; frames
+  where it is unknown, e.g. cameras given with ``--cameras``, have no value).
 
-A blueprint puts the 3D view beside the current image.
+The default blueprint: the 3D view (mesh, rings, all cameras, its eye set by
+:meth:`Recorder.frame_view` to frame the object) beside the current photo with
+its ellipses and silhouette, and under it the two per-frame plots.
 
 The recording is kept in memory and written by :meth:`Recorder.save` with an
 ordinary file write (whole or not at all): Rerun's own file sink blocked
@@ -20,6 +30,7 @@ ours fails at once with "no space left".
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +38,30 @@ import numpy as np
 from calib.camera import circle_points_table, invert_T
 from calib.conics import conic_to_ellipse, ellipse_points
 
-__all__ = ["Recorder", "record_reconstruction"]
+__all__ = ["HIDDEN_BY_DEFAULT", "SCALARS", "Recorder", "camera_entity", "record_reconstruction"]
+
+#: Entities logged but hidden in the default blueprint.
+HIDDEN_BY_DEFAULT = ("world/hull", "world/points")
+#: The per-frame plots: entity -> plot title.
+SCALARS = {"calibration/edge_rms_px": "edge RMS (px)", "calibration/angle_deg": "turntable angle (deg)"}
+#: Long side of the photo drawn in every camera's frustum, pixels.
+THUMBNAIL_PX = 160
+#: Colour of the current frame's frustum (the others are drawn in the viewer's default colour).
+CURRENT_CAMERA_RGB = (255, 120, 0)
+#: The 3D view's eye, in farthest-camera distances from the object (:func:`eye_for`).
+EYE_DISTANCE = 2.0
+
+
+def camera_entity(index: int) -> str:
+    """The static camera of frame ``index``: ``world/cameras/frame_000``."""
+    return f"world/cameras/frame_{int(index):03d}"
+
+
+def _pinhole_K(K, sx: float = 1.0, sy: float = 1.0) -> np.ndarray:
+    """Our K (pixel (0, 0)'s centre at (0, 0)) in Rerun's convention (centre at (0.5, 0.5)), scaled by (sx, sy)."""
+    K_rr = np.asarray(K, float).copy()
+    K_rr[:2, 2] += 0.5
+    return np.diag([sx, sy, 1.0]) @ K_rr
 
 
 class Recorder:
@@ -40,21 +74,36 @@ class Recorder:
         self.path = None if path is None else Path(path)
         self.rec = rr.RecordingStream(application_id)
         self._memory = self.rec.memory_recording()
+        self._eye: tuple[np.ndarray, np.ndarray] | None = None
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
-        self._send_blueprint()
+        self.rec.log("world/camera", rr.TransformAxes3D(0.0), static=True)  # its coloured frustum marks it
 
-    def _send_blueprint(self) -> None:
+    # -- the default layout -------------------------------------------------------------
+    def frame_view(self, eye_table, look_target_table) -> None:
+        """Where the 3D view's eye starts (table frame, mm), looking at ``look_target_table``."""
+        self._eye = (np.asarray(eye_table, float).reshape(3), np.asarray(look_target_table, float).reshape(3))
+
+    def blueprint(self):
+        """The default blueprint (see the module docstring)."""
         import rerun.blueprint as rrb
 
-        bp = rrb.Blueprint(
+        eye = None
+        if self._eye is not None:
+            eye = rrb.EyeControls3D(position=self._eye[0], look_target=self._eye[1], eye_up=[0.0, 1.0, 0.0])
+        hidden = {e: rrb.EntityBehavior(visible=False) for e in HIDDEN_BY_DEFAULT}
+        view3d = rrb.Spatial3DView(origin="world", name="table frame (mm)", overrides=hidden, eye_controls=eye)
+        plots = [rrb.TimeSeriesView(origin=e, name=title) for e, title in SCALARS.items()]
+        return rrb.Blueprint(
             rrb.Horizontal(
-                rrb.Spatial3DView(origin="world", name="table frame (mm)"),
-                rrb.Spatial2DView(origin="world/camera/image", name="current frame"),
+                view3d,
+                rrb.Vertical(rrb.Spatial2DView(origin="world/camera/image", name="current frame"),
+                             rrb.Horizontal(*plots), row_shares=[3, 2]),
                 column_shares=[3, 2],
             ),
-            rrb.TimePanel(expanded=False),
+            rrb.BlueprintPanel(state="collapsed"),
+            rrb.SelectionPanel(state="collapsed"),
+            rrb.TimePanel(state="collapsed"),
         )
-        self.rec.send_blueprint(bp)
 
     # -- static scene -------------------------------------------------------------------
     def log_target(self, r_outer_mm: float, r_inner_mm: float) -> None:
@@ -83,28 +132,51 @@ class Recorder:
     def log_text(self, entity: str, text: str) -> None:
         self.rec.log(entity, self._rr.TextDocument(text, media_type="text/markdown"), static=True)
 
+    def log_static_camera(self, index: int, K, width: int, height: int, T_cam_table, image_rgb=None,
+                          image_plane_mm: float = 40.0) -> None:
+        """Frame ``index``'s camera, static, at :func:`camera_entity`; the photo reduced to :data:`THUMBNAIL_PX`."""
+        import cv2
+
+        rr = self._rr
+        entity = camera_entity(index)
+        T_table_cam = invert_T(np.asarray(T_cam_table, float))
+        self.rec.log(entity, rr.Transform3D(translation=T_table_cam[:3, 3], mat3x3=T_table_cam[:3, :3]),
+                     rr.TransformAxes3D(0.0), static=True)
+        s = min(1.0, THUMBNAIL_PX / max(width, height))
+        w, h = max(1, round(width * s)), max(1, round(height * s))
+        self.rec.log(entity, rr.Pinhole(image_from_camera=_pinhole_K(K, w / width, h / height), resolution=[w, h],
+                                        camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=image_plane_mm),
+                     static=True)
+        if image_rgb is not None:
+            small = cv2.resize(np.ascontiguousarray(image_rgb), (w, h), interpolation=cv2.INTER_AREA)
+            self.rec.log(f"{entity}/image", rr.Image(small).compress(jpeg_quality=80), static=True)
+
     # -- per frame ----------------------------------------------------------------------
     def set_frame(self, index: int) -> None:
         self.rec.set_time("frame", sequence=int(index))
 
     def log_camera(self, index: int, K, width: int, height: int, T_cam_table, image_rgb=None,
                    image_plane_mm: float = 60.0) -> None:
+        """The current frame's camera (``world/camera``) and photo, on the ``frame`` timeline."""
         rr = self._rr
         self.set_frame(index)
         T_table_cam = invert_T(np.asarray(T_cam_table, float))
         self.rec.log("world/camera", rr.Transform3D(translation=T_table_cam[:3, 3], mat3x3=T_table_cam[:3, :3]))
-        # Rerun puts pixel (0, 0)'s centre at (0.5, 0.5); ours is at (0, 0).
-        K_rr = np.asarray(K, float).copy()
-        K_rr[:2, 2] += 0.5
-        self.rec.log("world/camera", rr.Pinhole(image_from_camera=K_rr, resolution=[width, height],
+        self.rec.log("world/camera", rr.Pinhole(image_from_camera=_pinhole_K(K), resolution=[width, height],
                                                 camera_xyz=rr.ViewCoordinates.RDF,
-                                                image_plane_distance=image_plane_mm))
+                                                image_plane_distance=image_plane_mm, color=CURRENT_CAMERA_RGB))
         if image_rgb is not None:
             self.rec.log("world/camera/image", rr.Image(np.ascontiguousarray(image_rgb)).compress(jpeg_quality=85))
 
     def log_image_only(self, index: int, image_rgb) -> None:
         self.set_frame(index)
         self.rec.log("image", self._rr.Image(np.ascontiguousarray(image_rgb)).compress(jpeg_quality=85))
+
+    def log_scalar(self, index: int, entity: str, value: float) -> None:
+        """One per-frame value (a plot of the default blueprint when ``entity`` is in :data:`SCALARS`)."""
+        if math.isfinite(value):
+            self.set_frame(index)
+            self.rec.log(entity, self._rr.Scalars(float(value)))
 
     def log_conics(self, index: int, conics: dict) -> None:
         rr = self._rr
@@ -130,9 +202,10 @@ class Recorder:
 
     # -- lifetime -----------------------------------------------------------------------
     def save(self, path: str | Path) -> Path:
-        """Write everything logged so far to ``path`` (atomically) and end the recording."""
+        """Write everything logged so far, and the default blueprint, to ``path`` (atomically); end the recording."""
         from recon.fileio import atomic_write_bytes
 
+        self.rec.send_blueprint(self.blueprint())
         self.rec.flush(timeout_sec=60.0)  # encoding into memory: no disk involved
         data = self._memory.drain_as_bytes()
         self.rec.disconnect()
@@ -153,18 +226,52 @@ class Recorder:
             self.close()
 
 
+def eye_for(vertices_table, Ts) -> tuple[np.ndarray, np.ndarray]:
+    """A 3D eye that shows the whole object with the cameras around it: (eye, look target), table frame, mm.
+
+    It looks at the centre of the object's bounding box from 45° above the
+    table, from the side the cameras are on (their mean direction; the first
+    camera's where they go all round), at twice the farthest camera's distance,
+    so the object is whole in the middle of the view and the cameras' arc in
+    front of it.
+    """
+    V = np.asarray(vertices_table, float).reshape(-1, 3)
+    target = 0.5 * (V.min(axis=0) + V.max(axis=0)) if len(V) else np.zeros(3)
+    centres = np.array([invert_T(np.asarray(T, float))[:3, 3] for T in Ts]).reshape(-1, 3)
+    if not len(centres):
+        return target + np.array([0.0, 500.0, 500.0]), target
+    d = centres - target
+    dist = float(np.max(np.linalg.norm(d, axis=1)))
+    side = d.mean(axis=0)
+    if np.hypot(side[0], side[2]) < 0.25 * dist:  # cameras all round: the mean says nothing
+        side = d[0]
+    az = math.atan2(side[0], side[2])
+    elev = math.radians(45.0)
+    direction = np.array([math.cos(elev) * math.sin(az), math.sin(elev), math.cos(elev) * math.cos(az)])
+    return target + EYE_DISTANCE * dist * direction, target
+
+
 def record_reconstruction(rec: Recorder, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh, conics,
                           ws) -> None:
     """The recording shows the work images with their camera ``K`` and the rings mapped onto them."""
     if opts.spec is not None:
         rec.log_target(opts.spec.r_outer_mm, opts.spec.r_inner_mm)
     W, H = ws.work
+    by_name = {fp.image: fp for fp in seq.frames}
+    eye, target = eye_for(mesh.vertices_table, Ts)
+    dist = float(np.linalg.norm(eye - target)) / EYE_DISTANCE
     for i, n in enumerate(names):
-        rec.log_camera(i, K, W, H, Ts[i], image_rgb=images_rgb[i])
+        rec.log_static_camera(i, K, W, H, Ts[i], image_rgb=images_rgb[i], image_plane_mm=0.1 * dist)
+        rec.log_camera(i, K, W, H, Ts[i], image_rgb=images_rgb[i], image_plane_mm=0.2 * dist)
         if n in conics:
             rec.log_conics(i, {k: ws.conic(C) for k, C in conics[n].items()})
         rec.log_silhouette(i, masks[i])
+        fp = by_name.get(n)
+        if fp is not None:
+            rec.log_scalar(i, "calibration/edge_rms_px", fp.rms_px)
+            rec.log_scalar(i, "calibration/angle_deg", fp.angle_deg)
     rec.log_mesh("hull", hull_mesh.vertices_table, hull_mesh.faces, hull_mesh.normals_table)
     if fused is not None and len(fused.pts_table):
         rec.log_points("points", fused.pts_table, fused.colors_rgb)
     rec.log_mesh("mesh", mesh.vertices_table, mesh.faces, mesh.normals_table, mesh.colors_rgb)
+    rec.frame_view(eye, target)
