@@ -17,7 +17,14 @@ from calib.camera import invert_T, make_T, rotation_from_normal
 from calib.types import FramePose
 from turntable.cli import main
 from turntable.cli.view import no_display_reason, web_command, web_url
-from turntable.recording import HIDDEN_BY_DEFAULT, SCALARS, Recorder, camera_entity, record_reconstruction
+from turntable.recording import (
+    HIDDEN_BY_DEFAULT,
+    SCALARS,
+    Recorder,
+    camera_entity,
+    eye_for,
+    record_reconstruction,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -139,6 +146,18 @@ def test_default_blueprint_shows_the_mesh_and_hides_hull_and_points(tmp_path):
         assert np.degrees(np.arccos(np.clip(d @ axis, -1, 1))) < 30.0
     assert np.linalg.norm(pos - target) > np.linalg.norm(centres - target, axis=1).max()
     assert pos[1] > centres[:, 1].max()  # from above the cameras: they do not hide the object
+
+
+def test_eye_looks_from_the_side_of_an_arc_of_cameras():
+    """Cameras over 70 degrees only (a partial turn): the eye stands behind their arc, not across the table."""
+    Ts = _turntable_poses(36)[:8]  # 0..70 degrees
+    V = np.array([[-30.0, 0, -30], [30, 100, 30]])
+    eye, target = eye_for(V, Ts)
+    centres = np.array([invert_T(T)[:3, 3] for T in Ts])
+    az_eye = np.degrees(np.arctan2(eye[0] - target[0], eye[2] - target[2]))
+    az_arc = np.degrees(np.arctan2(*(centres - target).mean(axis=0)[[0, 2]]))
+    assert abs(az_eye - az_arc) < 1.0  # degrees
+    assert 40.0 < np.degrees(np.arcsin((eye - target)[1] / np.linalg.norm(eye - target))) < 50.0
 
 
 def test_per_frame_calibration_is_plotted(tmp_path):
