@@ -19,7 +19,8 @@ rows get the weights ``w_i = 1 / sqrt(1 + (r_i / c)^2)`` (``w = 1`` for L2),
 
     (A + lam D) dx = -g,     D = max(diag(A), 1e-12 max(diag(A)))   (Marquardt's scaling)
 
-Damping: ``lam`` starts at ``lam0`` (1e-3), is divided by 10 after an accepted
+Damping: ``lam`` starts at ``lam0`` (1e-3 by default; the single view, which starts at
+a closed-form solution, takes 1e-6), is divided by 10 after an accepted
 step (down to 1e-9) and multiplied by 10 after a rejected one (one that does not
 lower ``C``, or a singular system); past 1e10 the solver stops.
 
