@@ -107,9 +107,9 @@ def kernels(frame_counts, points_per_edge: int = 100) -> None:
                           for r in (80.0, 50.0) for s in (-1, 1))
             frames.append(FrameEdges.from_observation(TargetObservation(edges, 640, 480), points_per_edge))
         st = FitState(K=K, dist=np.zeros(5), stroke=3.0, R_cam_axis=T_ca[:3, :3], t_cam_axis=T_ca[:3, 3],
-                    d_xz=np.zeros(2), theta=theta)
+                      d_xz=np.zeros(2), theta=theta)
         p = JointProblem(frames, st, ("f", "k1"), True, "turntable", free_theta=np.arange(n) > 0,
-                     mark_R=[T_ca[:3, :3] @ rot_y(th) for th in theta], mark_w=np.full(n, 50.0))
+                         mark_R=[T_ca[:3, :3] @ rot_y(th) for th in theta], mark_w=np.full(n, 50.0))
         x = np.zeros(p.n_params)
         t_res = t_jac = float("inf")
         for _ in range(5):

@@ -13,7 +13,7 @@ from __future__ import annotations
 import importlib
 
 _EXPORTS = {
-    "types": ["CalibrationError", "Intrinsics", "EdgePoints", "TargetObservation", "CalibrationStd",
+    "types": ["CalibrationError", "Intrinsics", "EdgePoints", "TargetObservation", "RingConics", "CalibrationStd",
               "ViewCalibration", "FramePose", "SequenceCalibration", "SequenceDiagnostics",
               "TurntableDiagnostics", "AngleCheck", "image_centre"],
     "target": ["TargetSpec"],

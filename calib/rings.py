@@ -42,7 +42,7 @@ from .arcs import extract_arcs, find_ellipses
 from .conics import conic_center, conic_to_ellipse, fit_conic, normalize_conic, sampson_distance
 from .edges import conic_samples, find_stroke_edges, line_conic_offsets
 from .target import TargetSpec
-from .types import CalibrationError, EdgePoints, TargetObservation
+from .types import CalibrationError, EdgePoints, RingConics, TargetObservation
 
 __all__ = ["detect_rings", "pencil_ratio", "edge_conic", "grey_image", "coarse_ellipses", "COARSE_SIZE_PX"]
 
@@ -264,9 +264,9 @@ def detect_rings(image, spec: TargetSpec, *, principal_point_px=None,
     -------
     TargetObservation
         ``edges``: four ``EdgePoints`` (outer ring side +1 and -1, inner ring
-        side +1 and -1), points in pixels, outliers removed; ``conics``:
-        normalised pixel conics ``"outer"``, ``"inner"`` (centre lines) and
-        ``"outer+"``, ``"outer-"``, ``"inner+"``, ``"inner-"`` (edges).
+        side +1 and -1), points in pixels, outliers removed; ``conics``: the
+        rings' normalised pixel conics (:class:`calib.types.RingConics`: centre
+        lines and both edges of each stroke).
 
     Raises
     ------
@@ -368,11 +368,11 @@ def _fine(grey: np.ndarray, Co: np.ndarray, Ci: np.ndarray, spec: TargetSpec,
     for name, R in radii.items():
         C_in, C_out, C_mid, uv_in, uv_out = fits[name]
         edges += [EdgePoints(uv_out + origin, R, +1), EdgePoints(uv_in + origin, R, -1)]
-        out_conics.update({name: _shift(C_mid, back), name + "+": _shift(C_out, back),
-                           name + "-": _shift(C_in, back)})
+        out_conics.update({name: _shift(C_mid, back), name + "_plus": _shift(C_out, back),
+                           name + "_minus": _shift(C_in, back)})
     log.debug("rings: %d/%d/%d/%d edge points, ratio %.4f, split %.2e",
               *(len(e.uv_px) for e in edges), ratio, split)
-    return TargetObservation(edges=tuple(edges), width=w, height=h, conics=out_conics)
+    return TargetObservation(edges=tuple(edges), width=w, height=h, conics=RingConics(**out_conics))
 
 
 def _fine_roi(grey: np.ndarray, C_outer: np.ndarray, gamma: float = 2.2) -> tuple[np.ndarray, np.ndarray]:

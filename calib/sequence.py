@@ -58,8 +58,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .camera import camera_centre_table, make_T
+from .calibrate import calibrate_view
+from .camera import camera_centre_table, make_T, rotation_from_normal
 from .distortion import undistort_px
+from .marks import align_pose_to_marks, read_turntable_angle
 from .sequence_model import (
     FitReport,
     FitState,
@@ -178,8 +180,6 @@ def _init_turntable(Ts: list[np.ndarray], theta: np.ndarray, yaw_known: bool) ->
         sol, per_frame, _ = _circle_fit(Ts, theta)
         C, d = sol[:3], sol[3:]
         return R_ca, -R_ca @ C, d, float(np.median(per_frame))
-    from .camera import rotation_from_normal
-
     n = np.mean([T[:3, 1] for T in Ts], axis=0)
     R_ca = rotation_from_normal(n, x_hint_cam=Ts[0][:3, 0])
     return R_ca, np.mean([T[:3, 3] for T in Ts], axis=0), np.zeros(2), float("nan")
@@ -194,8 +194,6 @@ def _mark_weights(stds_deg: Sequence[float], noise_px: float) -> np.ndarray:
 def marks_angle_reader(images: Sequence[np.ndarray | None], spec: TargetSpec,
                        dist: np.ndarray | None = None) -> AngleReader:
     """The default :data:`AngleReader`: ``calib.marks`` on ``images[k]`` (raw, distorted by ``dist``)."""
-    from .marks import align_pose_to_marks, read_turntable_angle
-
     def read(k: int, K: np.ndarray, T: np.ndarray, dist_now: np.ndarray | None = None) -> tuple[np.ndarray, float]:
         img = images[k]
         if img is None:
@@ -231,18 +229,16 @@ class SingleView:
 def _undistort_observation(obs: TargetObservation, intr: Intrinsics) -> TargetObservation:
     edges = tuple(EdgePoints(undistort_px(e.uv_px, intr.K, intr.dist), e.ring_radius_mm, e.side)
                   for e in obs.edges)
-    return replace(obs, edges=edges, conics={})
+    return replace(obs, edges=edges, conics=None)
 
 
 def single_view(obs: TargetObservation, spec: TargetSpec, pp, max_per_edge: int) -> SingleView:
     """Calibrate one frame alone (``calib.calibrate.calibrate_view``, solver "refine", principal point
     ``pp`` or the image centre) and keep at most ``max_per_edge`` points per edge for the joint fit."""
-    from .calibrate import calibrate_view
-
     cal = calibrate_view(obs, spec, solver="refine", principal_point_px=pp)
     stroke = float(cal.stroke_mm) if np.isfinite(cal.stroke_mm) else spec.stroke_mm
     return SingleView(edges=FrameEdges.from_observation(obs, max_per_edge), T=np.asarray(cal.T_cam_table, float),
-                   focal_px=cal.intrinsics.focal_px, rms_px=float(cal.rms_px), stroke_mm=stroke)
+                      focal_px=cal.intrinsics.focal_px, rms_px=float(cal.rms_px), stroke_mm=stroke)
 
 
 def _per_frame(observations, spec, intr, pp, reader, failures, max_per_edge, progress):
@@ -286,7 +282,7 @@ def _fit_turntable(singles, idx, state0, theta0, free_theta, yaw_known, free_int
     mark_R = [singles[k].T[:3, :3] if singles[k].yaw_ok else None for k in idx]
     mark_w = _mark_weights([singles[k].angle_std_deg if singles[k].yaw_ok else np.nan for k in idx], noise_px)
     fit = fit_joint(frames, st, "turntable", free_intr, free_stroke, report=report, free_theta=free_theta,
-               free_yaw=yaw_known, mark_R=mark_R, mark_w=mark_w)
+                    free_yaw=yaw_known, mark_R=mark_R, mark_w=mark_w)
     return fit, centre_rms
 
 
@@ -300,10 +296,9 @@ def _fit_handheld(singles, idx, state0, free_intr, free_stroke, report=None):
 def _refit(fit: JointFit, free_intr: tuple[str, ...], state: FitState | None = None, report: FitReport | None = None,
            stage: str = "") -> JointFit:
     p = fit.problem
-    return solve_joint(JointProblem(p.frames, fit.state if state is None else state, free_intr, p.free_stroke, p.model,
-                           free_theta=p.free_theta,
-                           free_yaw=p.free_yaw, mark_R=p.mark_R, mark_w=p.mark_w), robust=False, report=report,
-                  stage=stage)
+    problem = JointProblem(p.frames, fit.state if state is None else state, free_intr, p.free_stroke, p.model,
+                           free_theta=p.free_theta, free_yaw=p.free_yaw, mark_R=p.mark_R, mark_w=p.mark_w)
+    return solve_joint(problem, robust=False, report=report, stage=stage)
 
 
 def _extend(fit: JointFit, base: tuple[str, ...], extra: tuple[str, ...], notes: dict,
@@ -693,7 +688,7 @@ def _reread_marks(fit: JointFit, used: list[int], reader: AngleReader, report: F
         mark_R[i] = np.asarray(T, float)[:3, :3]
         w[i] = _mark_weights([std], fit.rms_px)[0]
     prob = JointProblem(p.frames, st, p.free_intr, p.free_stroke, p.model, free_theta=p.free_theta,
-                    free_yaw=p.free_yaw, mark_R=mark_R, mark_w=w)
+                        free_yaw=p.free_yaw, mark_R=mark_R, mark_w=w)
     return solve_joint(prob, robust=False, report=report, stage="turntable, marks read again")
 
 

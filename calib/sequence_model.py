@@ -591,7 +591,7 @@ def fit_joint(frames: list[FrameEdges], state: FitState, model: str, free_intr: 
               report: FitReport | None = None, **kw) -> JointFit:
     """Robust fit (soft L1, 1 px), drop edge points beyond 5 robust sigmas, final least squares."""
     fit = solve_joint(JointProblem(frames, state, free_intr, free_stroke, model, **kw), robust=True, report=report,
-                 stage=model)
+                      stage=model)
     r = fit.residuals
     n_e = int(fit.problem.row_start[-1])
     sigma = 1.4826 * float(np.median(np.abs(r[:n_e])))
@@ -601,5 +601,5 @@ def fit_joint(frames: list[FrameEdges], state: FitState, model: str, free_intr: 
         rk = r[fit.problem.row_start[k]:fit.problem.row_start[k + 1]]
         keep = np.abs(rk) <= thr
         kept.append(fe if keep.all() else fe.select(keep))
-    return solve_joint(JointProblem(kept, fit.state, free_intr, free_stroke, model, **kw), robust=False, report=report,
-                  stage=model)
+    return solve_joint(JointProblem(kept, fit.state, free_intr, free_stroke, model, **kw), robust=False,
+                       report=report, stage=model)

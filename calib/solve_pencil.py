@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .camera import make_T, rotation_from_normal
-from .conics import fit_conic, normalize_conic
+from .conics import conic_to_ellipse, fit_conic, normalize_conic
 from .types import CalibrationError, EdgePoints
 
 __all__ = [
@@ -240,8 +240,6 @@ def _check_concentric(conics, l, c) -> None:
     (any two conics share a self-polar triangle), so it tests only the other
     edge conics; ``calib.calibrate`` tests the whole model by its residuals.
     """
-    from .conics import conic_to_ellipse
-
     try:
         size = max(conic_to_ellipse(C).a for C in conics)
     except ValueError as exc:

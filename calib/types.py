@@ -20,6 +20,7 @@ __all__ = [
     "Intrinsics",
     "EdgePoints",
     "TargetObservation",
+    "RingConics",
     "CalibrationStd",
     "ViewCalibration",
     "FramePose",
@@ -148,6 +149,31 @@ class EdgePoints:
         return self.ring_radius_mm + self.side * stroke_mm / 2.0
 
 
+@dataclass(frozen=True, eq=False)
+class RingConics:
+    """Image conics of the two rings: normalised ``C`` (3, 3) float64, pixels, ``x^T C x = 0``.
+
+    Attributes
+    ----------
+    outer, inner : (3, 3) float64
+        The strokes' centre lines.
+    outer_plus, outer_minus, inner_plus, inner_minus : (3, 3) float64 or None
+        Each stroke's side +1 (outside) and side -1 (inside) edge (None where
+        not fitted).
+    """
+
+    outer: np.ndarray
+    inner: np.ndarray
+    outer_plus: np.ndarray | None = None
+    outer_minus: np.ndarray | None = None
+    inner_plus: np.ndarray | None = None
+    inner_minus: np.ndarray | None = None
+
+    def items(self) -> tuple[tuple[str, np.ndarray], tuple[str, np.ndarray]]:
+        """The centre lines labelled: ``(("outer", outer), ("inner", inner))`` (for logging)."""
+        return ("outer", self.outer), ("inner", self.inner)
+
+
 @dataclass(frozen=True)
 class TargetObservation:
     """Everything one image tells about the two concentric rings.
@@ -159,15 +185,15 @@ class TargetObservation:
         outer and of the inner ring).
     width, height : int
         Image size in pixels.
-    conics : dict[str, (3, 3) ndarray]
-        Fitted image conics (pixel coordinates, ``x^T C x = 0``) keyed
-        ``"outer"``/``"inner"`` for the ring centre lines; diagnostic.
+    conics : RingConics or None
+        The fitted image conics of the rings (diagnostic; None when not
+        fitted, or not valid for these edges, e.g. after undistortion).
     """
 
     edges: tuple[EdgePoints, ...]
     width: int
     height: int
-    conics: dict = field(default_factory=dict)
+    conics: RingConics | None = None
 
     def radii_mm(self) -> list[float]:
         return sorted({e.ring_radius_mm for e in self.edges}, reverse=True)

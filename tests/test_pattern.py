@@ -170,7 +170,7 @@ def test_printed_png_photographed_calibrates_back_to_its_own_geometry(tmp_path):
     photo = cv2.imdecode(cv2.imencode(".jpg", photo, [cv2.IMWRITE_JPEG_QUALITY, 95])[1], cv2.IMREAD_GRAYSCALE)
 
     obs = detect_rings(photo, SPEC, gamma=1.0)  # the warp mixes grey levels linearly
-    _, ratio, _ = pencil_ratio(obs.conics["outer"], obs.conics["inner"])
+    _, ratio, _ = pencil_ratio(obs.conics.outer, obs.conics.inner)
     assert abs(ratio / SPEC.radius_ratio - 1) < 1e-3
     cal = calibrate_view(obs, SPEC)
     assert abs(cal.intrinsics.focal_px / f - 1) < 0.003

@@ -86,8 +86,8 @@ def perturbed_single_view(Ts_true, K_true, rng):
         w = rng.normal(0, math.radians(0.5), 3)
         R = sm.exp_so3(w) @ T[:3, :3] @ cs.rot_y(rng.uniform(-np.pi, np.pi))
         return cs.SingleView(edges=sm.FrameEdges.from_observation(obs, max_per_edge),
-                          T=make_T(R, T[:3, 3] + rng.normal(0, 3.0, 3)),
-                          focal_px=K_true[0, 0] * (1 + rng.normal(0, 0.01)), rms_px=0.15, stroke_mm=3.0)
+                             T=make_T(R, T[:3, 3] + rng.normal(0, 3.0, 3)),
+                             focal_px=K_true[0, 0] * (1 + rng.normal(0, 0.01)), rms_px=0.15, stroke_mm=3.0)
 
     return single, lookup
 
@@ -396,11 +396,11 @@ def _problems(rng, n):
     d = np.array([2.0, 0.0, -1.5])
     T_ca = Ts[0] @ np.linalg.inv(make_T(cs.rot_y(theta[0]), cs.rot_y(theta[0]) @ d))
     st = sm.FitState(K=K * [[1.01], [1.01], [1]], dist=np.array([-0.01, 0, 0, 0, 0.0]), stroke=3.0,
-                   R_cam_axis=T_ca[:3, :3], t_cam_axis=T_ca[:3, 3] + 1.0, d_xz=np.zeros(2), theta=theta + 0.01)
+                      R_cam_axis=T_ca[:3, :3], t_cam_axis=T_ca[:3, 3] + 1.0, d_xz=np.zeros(2), theta=theta + 0.01)
     free = np.arange(n) > 0
     mark_R = [None] + [T[:3, :3] for T in Ts[1:]]
     tt = JointProblem(frames, st, ("f", "k1"), True, "turntable", free_theta=free, mark_R=mark_R,
-                  mark_w=np.full(n, 50.0))
+                      mark_w=np.full(n, 50.0))
     sh = FitState(K=st.K, dist=st.dist, stroke=3.0, R=[T[:3, :3] for T in Ts], t=[T[:3, 3] + 1.0 for T in Ts])
     hh = JointProblem(frames, sh, ("f", "cx", "cy", "k1"), True, "handheld")
     return [(p, rng.normal(0, 1e-3, p.n_params)) for p in (tt, hh)]

@@ -33,11 +33,9 @@ def draw_calibration(image_bgr: np.ndarray, obs: TargetObservation | None, cal: 
         for e in obs.edges:
             for u, v in e.uv_px[:: max(1, len(e.uv_px) // 400)]:
                 cv2.circle(img, (int(round(u * 16)), int(round(v * 16))), 16, (0, 220, 255), -1, cv2.LINE_AA, 4)
-        for key in ("outer", "inner"):
-            C = obs.conics.get(key)
-            if C is not None:
-                with contextlib.suppress(ValueError):
-                    _poly(img, ellipse_points(conic_to_ellipse(C), 360), (255, 255, 0), thick)
+        for C in (obs.conics.outer, obs.conics.inner) if obs.conics is not None else ():
+            with contextlib.suppress(ValueError):
+                _poly(img, ellipse_points(conic_to_ellipse(C), 360), (255, 255, 0), thick)
     if cal is not None:
         K, T = cal.intrinsics.K, cal.T_cam_table
         for r in (r_outer_mm, r_inner_mm):

@@ -92,7 +92,9 @@ def detect_and_reduce(frames: Iterable[tuple[str, np.ndarray | None, str]], spec
                 except (CalibrationError, ValueError) as exc:  # one bad frame does not stop the sequence
                     why = str(exc)
             if out.work is None:
-                ring = 2.0 * conic_to_ellipse(obs.conics["outer"]).a if obs is not None else None
+                ring = None
+                if obs is not None and obs.conics is not None:
+                    ring = 2.0 * conic_to_ellipse(obs.conics.outer).a
                 out.work = choose((w, h), ring, name)
             img = out.work.reduce(img)
         elif not why:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.types import SequenceCalibration, SequenceDiagnostics
+from calib.types import RingConics, SequenceCalibration, SequenceDiagnostics
 
 from ..cameras_io import read_cameras, write_cameras
 from ..errors import UserError
@@ -68,8 +68,10 @@ def calibrate(loaded, opts: ReconstructOptions, progress: Progress, key: str,
     for warning in diagnostics.warnings:
         progress.note(f"cameras: WARNING: {warning}")
     seq = replace(seq, diagnostics=replace(diagnostics, stage_key=key))
-    names = [n for n, o in zip(loaded.names, observations, strict=True) if o is not None]
-    conics = np.array([[o.conics["outer"], o.conics["inner"]] for o in observations if o is not None])
+    found = [(n, o.conics) for n, o in zip(loaded.names, observations, strict=True)
+             if o is not None and o.conics is not None]
+    names = [n for n, _ in found]
+    conics = np.array([[c.outer, c.inner] for _, c in found])
     conics = conics.reshape(-1, 2, 3, 3)
     cam_path = cache.dir / "cameras.json"
     write_cameras(cam_path, seq)
@@ -78,10 +80,11 @@ def calibrate(loaded, opts: ReconstructOptions, progress: Progress, key: str,
     return seq, conics_from_arrays({"names": np.array(names, dtype=str), "conics": conics})
 
 
-def conics_from_arrays(d: dict) -> dict:
+def conics_from_arrays(d: dict) -> dict[str, RingConics]:
+    """Each frame's ring centre lines by frame name, from the detections' saved arrays."""
     if "names" not in d:
         return {}
-    return {str(n): {"outer": c[0], "inner": c[1]} for n, c in zip(d["names"], d["conics"], strict=True)}
+    return {str(n): RingConics(outer=c[0], inner=c[1]) for n, c in zip(d["names"], d["conics"], strict=True)}
 
 
 def check_given(seq: SequenceCalibration, good: list[Frame], opts: ReconstructOptions,
