@@ -18,24 +18,14 @@ def test_all_exports_resolve(package):
         _ = mod.no_such_name
 
 
-def test_recon_modules_import_no_private_names_from_each_other():
-    """What one recon module needs from another has a public name (issue 11)."""
-    root = Path(importlib.import_module("recon").__file__).parent
+@pytest.mark.parametrize("package", ["recon", "calib"])
+def test_package_modules_import_no_private_names_from_each_other(package):
+    """What one module of a package needs from another has a public name (issue 11)."""
+    root = Path(importlib.import_module(package).__file__).parent
     found = []
     for path in sorted(root.glob("*.py")):
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-            if isinstance(node, ast.ImportFrom) and (node.level > 0 or (node.module or "").startswith("recon")):
-                found += [f"{path.name}: {alias.name}" for alias in node.names if alias.name.startswith("_")]
-    assert not found, found
-
-
-def test_calib_modules_import_no_private_names_from_each_other():
-    """What one calib module needs from another has a public name (issue 11)."""
-    root = Path(importlib.import_module("calib").__file__).parent
-    found = []
-    for path in sorted(root.glob("*.py")):
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-            if isinstance(node, ast.ImportFrom) and (node.level > 0 or (node.module or "").startswith("calib")):
+            if isinstance(node, ast.ImportFrom) and (node.level > 0 or (node.module or "").startswith(package)):
                 found += [f"{path.name}: {alias.name}" for alias in node.names if alias.name.startswith("_")]
     assert not found, found
 
