@@ -2,7 +2,9 @@
 
 Edges, ellipses and conics -> ring detection -> the paper's solver, the conic
 pencil's closed form, maximum-likelihood refinement -> the turntable angle
-from the printed marks -> one joint calibration per sequence.
+from the printed marks -> one joint calibration per sequence. Both
+maximum-likelihood fits (``refine``, ``sequence_model``) are solved by the one
+Levenberg-Marquardt solver of ``lm`` (soft-L1 or least squares).
 
 Public names are imported lazily (``from calib import detect_rings`` loads only
 what it needs).
