@@ -585,3 +585,24 @@ def test_photos_other_tools_would_read_differently_are_written_upright_as_png(tm
         with Image.open(written) as im:
             assert im.mode == "RGB" and im.size == read_image(src / name).shape[1::-1]
     assert read_image(src / "b_rotated.jpg").shape[:2] == (60, 40)  # the rotation was applied
+
+
+def test_pycolmap_undistorts_the_moved_export_and_every_image_gets_a_depth_range(moved_export, lens_scene, tmp_path):
+    """What COLMAP's dense stage reads: image_undistorter on the export as it is, then each image's depth
+    range as patch-match computes it (mvs::Model::ComputeDepthRanges: 1st/99th percentile of its tracks'
+    depths, x0.75 / x1.25) must hold the true object's depths."""
+    pycolmap = pytest.importorskip("pycolmap")
+
+    pycolmap.undistort_images(str(tmp_path / "dense"), str(moved_export / "colmap"), str(moved_export / "images"))
+    rec = pycolmap.Reconstruction(str(tmp_path / "dense" / "sparse"))
+    assert rec.num_images() == 8 and all((tmp_path / "dense" / "images" / im.name).is_file()
+                                         for im in rec.images.values())
+    truth_m = trimesh.load(lens_scene / "object_gt.ply", process=False).vertices / 1000.0
+    for image_id, im in rec.images.items():
+        T = im.cam_from_world().matrix()
+        depth = np.sort([T[2, :3] @ rec.points3D[p.point3D_id].xyz + T[2, 3]
+                         for p in im.points2D if p.has_point3D()])
+        assert len(depth) > 300 and depth[0] > 0, image_id
+        lo, hi = depth[int(len(depth) * 0.01)] * 0.75, depth[int(len(depth) * 0.99)] * 1.25
+        true = truth_m @ T[2, :3] + T[2, 3]
+        assert lo <= true.min() and true.max() <= hi, (image_id, lo, hi, true.min(), true.max())
