@@ -50,6 +50,7 @@ solved by :func:`calib.lm.levenberg_marquardt` on the dense normal equations
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -63,6 +64,7 @@ __all__ = [
     "edge_residuals",
     "edge_linearisation",
     "edge_geometry",
+    "EdgeGeometry",
     "stack_edges",
     "refine_view",
 ]
@@ -112,13 +114,29 @@ def stack_edges(edges: tuple[EdgePoints, ...]) -> tuple[np.ndarray, np.ndarray, 
     return uv, R, side
 
 
-def edge_geometry(f, cx, cy, n, t, uv):
-    """Back-projection terms shared by residual and Jacobian (module docstring's notation).
+class EdgeGeometry(NamedTuple):
+    """Back-projection terms of :func:`edge_geometry` (module docstring's notation), N points.
+
+    ``s`` (N,) ray scale to the plane; ``D`` (N, 3) mm, ``X - t``; ``rho`` (N,) mm, ``|D|``;
+    ``Dh`` (N, 3) ``D / rho``; ``k`` (N,) ``(D^ . q) / (n . q)``; ``grad`` (N, 2) mm/px,
+    ``d rho / d (u, v)``; ``g`` (N,) mm/px, ``|grad|``.
+    """
+
+    s: np.ndarray
+    D: np.ndarray
+    rho: np.ndarray
+    Dh: np.ndarray
+    k: np.ndarray
+    grad: np.ndarray
+    g: np.ndarray
+
+
+def edge_geometry(f, cx, cy, n, t, uv) -> EdgeGeometry:
+    """Back-projection terms shared by residual and Jacobian (:class:`EdgeGeometry`).
 
     ``f, cx, cy``: pixels; ``uv`` (N, 2) pixels; ``n``, ``t``: the plane normal and
     circle centre (camera frame, mm), (3,) for all points or (N, 3), one per point
-    (many views' points at once). Returns ``(s (N,), D (N, 3) mm, rho (N,) mm, D^ (N, 3),
-    k (N,), grad (N, 2) mm/px, |grad| (N,) mm/px)``.
+    (many views' points at once).
     """
     q = np.empty((len(uv), 3))
     q[:, 0] = uv[:, 0] - cx
@@ -136,7 +154,7 @@ def edge_geometry(f, cx, cy, n, t, uv):
     k = np.einsum("ij,ij->i", Dh, q) / nq
     grad = s[:, None] * (Dh[:, :2] - k[:, None] * n[..., :2])  # d rho / d (u, v), mm per px
     g = np.sqrt(np.einsum("ij,ij->i", grad, grad))
-    return s, D, rho, Dh, k, grad, g
+    return EdgeGeometry(s, D, rho, Dh, k, grad, g)
 
 
 def _unpack_K(K):
@@ -173,7 +191,8 @@ def edge_residuals(
     uv, R, side = stack_edges(edges)
     f, cx, cy = _unpack_K(K)
     T = np.asarray(T_cam_table, dtype=np.float64)
-    _, _, rho, _, _, _, g = edge_geometry(f, cx, cy, T[:3, 1], T[:3, 3], uv)
+    geo = edge_geometry(f, cx, cy, T[:3, 1], T[:3, 3], uv)
+    rho, g = geo.rho, geo.g
     return (rho - (R + 0.5 * side * stroke_mm)) / g + side * edge_offset_px
 
 
@@ -277,7 +296,7 @@ class _Problem:
     def freeze_weights(self, p):
         """Fix the pixel weights ``1 / |grad rho|`` at ``p`` (None: current)."""
         f, n, t, _, _ = self.unpack(p)
-        self.inv_g = 1.0 / edge_geometry(f, self.cx, self.cy, n, t, self.uv)[-1]
+        self.inv_g = 1.0 / edge_geometry(f, self.cx, self.cy, n, t, self.uv).g
 
     def rebase(self, n0):
         self.n0 = n0 / np.linalg.norm(n0)
@@ -303,7 +322,8 @@ class _Problem:
 
     def residual(self, p) -> np.ndarray:
         f, n, t, w, delta = self.unpack(p)
-        _, _, rho, _, _, _, g = edge_geometry(f, self.cx, self.cy, n, t, self.uv)
+        geo = edge_geometry(f, self.cx, self.cy, n, t, self.uv)
+        rho, g = geo.rho, geo.g
         inv_g = 1.0 / g if self.inv_g is None else self.inv_g
         return (rho - (self.R + 0.5 * self.side * w)) * inv_g + self.side * delta
 

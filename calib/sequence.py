@@ -273,24 +273,27 @@ def _per_frame(observations, spec, intr, pp, reader, failures, max_per_edge, pro
 
 
 # --------------------------------------------------------------------------- the models
-def _fit_turntable(singles, idx, state0, theta0, free_theta, yaw_known, free_intr, free_stroke, noise_px,
-                   report=None):
+def _fit_turntable(singles, idx: list[int], setup: _Setup, theta0: np.ndarray, free_theta: np.ndarray,
+                   yaw_known: bool, noise_px: float) -> tuple[JointFit, float]:
+    """The turntable model on frames ``idx`` from angles ``theta0`` (rad; ``free_theta`` marks those
+    fitted), and the camera centres' median distance (mm) off the initial circle."""
     frames = [singles[k].edges for k in idx]
     Ts = [singles[k].T for k in idx]
     R_ca, t_ca, d, centre_rms = _init_turntable(Ts, theta0, yaw_known)
-    st = replace(state0, R_cam_axis=R_ca, t_cam_axis=t_ca, d_xz=d, theta=theta0.copy(), R=None, t=None)
+    st = replace(setup.state0, R_cam_axis=R_ca, t_cam_axis=t_ca, d_xz=d, theta=theta0.copy(), R=None, t=None)
     mark_R = [singles[k].T[:3, :3] if singles[k].yaw_ok else None for k in idx]
     mark_w = _mark_weights([singles[k].angle_std_deg if singles[k].yaw_ok else np.nan for k in idx], noise_px)
-    fit = fit_joint(frames, st, "turntable", free_intr, free_stroke, report=report, free_theta=free_theta,
-                    free_yaw=yaw_known, mark_R=mark_R, mark_w=mark_w)
+    fit = fit_joint(frames, st, "turntable", setup.base, setup.free_stroke, report=setup.report,
+                    free_theta=free_theta, free_yaw=yaw_known, mark_R=mark_R, mark_w=mark_w)
     return fit, centre_rms
 
 
-def _fit_handheld(singles, idx, state0, free_intr, free_stroke, report=None):
+def _fit_handheld(singles, idx: list[int], setup: _Setup) -> JointFit:
+    """The hand-held model on frames ``idx``, from their single-view poses."""
     frames = [singles[k].edges for k in idx]
-    st = replace(state0, R=[singles[k].T[:3, :3] for k in idx], t=[singles[k].T[:3, 3] for k in idx],
+    st = replace(setup.state0, R=[singles[k].T[:3, :3] for k in idx], t=[singles[k].T[:3, 3] for k in idx],
                  R_cam_axis=None, t_cam_axis=None, d_xz=None, theta=None)
-    return fit_joint(frames, st, "handheld", free_intr, free_stroke, report=report)
+    return fit_joint(frames, st, "handheld", setup.base, setup.free_stroke, report=setup.report)
 
 
 def _refit(fit: JointFit, free_intr: tuple[str, ...], state: FitState | None = None, report: FitReport | None = None,
@@ -632,8 +635,7 @@ def _retry_turntable(singles, reasons, ok, setup: _Setup, first: _ModelFit) -> _
 
 def _fit_model(singles, ok, mode: str, setup: _Setup) -> _ModelFit:
     """Fit the turntable model where possible, choose the mode, fit the handheld model if chosen."""
-    step_deg, state0, base, free_stroke, report = (setup.step_deg, setup.state0, setup.base, setup.free_stroke,
-                                                   setup.report)
+    step_deg = setup.step_deg
     have_step = step_deg is not None
     angled = [k for k in ok if singles[k].yaw_ok or have_step]
     rms_pooled = float(np.sqrt(np.mean([singles[k].rms_px ** 2 for k in ok])))
@@ -647,8 +649,7 @@ def _fit_model(singles, ok, mode: str, setup: _Setup) -> _ModelFit:
         yaw_known = any(singles[k].yaw_ok for k in angled)
         theta0 = np.array([theta_all[k] for k in angled])
         try:
-            fit_tt, centre_rms = _fit_turntable(singles, angled, state0, theta0, free_theta, yaw_known, base,
-                                                free_stroke, rms_pooled, report)
+            fit_tt, centre_rms = _fit_turntable(singles, angled, setup, theta0, free_theta, yaw_known, rms_pooled)
         except (np.linalg.LinAlgError, ValueError) as exc:
             log.warning("turntable fit failed: %s", exc)
     chosen, why = _choose_mode(mode, singles, ok, angled, fit_tt, centre_rms, distance)
@@ -656,7 +657,7 @@ def _fit_model(singles, ok, mode: str, setup: _Setup) -> _ModelFit:
         if fit_tt is None:
             raise CalibrationError("turntable model could not be fitted")
         return _ModelFit(chosen, why, fit_tt, angled, checks, centre_rms, rms_pooled)
-    fit = _fit_handheld(singles, ok, state0, base, free_stroke, report)
+    fit = _fit_handheld(singles, ok, setup)
     return _ModelFit(chosen, why, fit, ok, checks, centre_rms, rms_pooled)
 
 

@@ -309,8 +309,8 @@ class JointProblem:
         n_e = int(self.row_start[-1])
         out = np.empty(self.n_rows)
         n, t = Ts[:, :3, 1][self.row_frame], Ts[:, :3, 3][self.row_frame]  # each row's plane normal, centre
-        _, _, rho, _, _, _, g = edge_geometry(st.K[0, 0], st.K[0, 2], st.K[1, 2], n, t, uv)
-        out[:n_e] = (rho - (self.ring_mm + 0.5 * self.side * st.stroke)) / g
+        geo = edge_geometry(st.K[0, 0], st.K[0, 2], st.K[1, 2], n, t, uv)
+        out[:n_e] = (geo.rho - (self.ring_mm + 0.5 * self.side * st.stroke)) / geo.g
         mk = self.mark_frames
         M = np.einsum("kji,kjl->kil", Ts[mk, :3, :3], self.mark_R_stack, optimize=False)  # R_model^T R_marks
         out[n_e:] = self.mark_w[mk] * np.arctan2(M[:, 0, 2] - M[:, 2, 0], M[:, 0, 0] + M[:, 2, 2])

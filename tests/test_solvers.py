@@ -284,11 +284,11 @@ def test_edge_linearisation_matches_finite_differences():
     assert 0.5 < np.max(np.abs(L.residual_px)) < 10.0
     uv, R, side = stack_edges(obs.edges)
     f, cx, cy, n, t = K[0, 0], K[0, 2], K[1, 2], T1[:3, 1], T1[:3, 3]
-    g0 = edge_geometry(f, cx, cy, n, t, uv)[-1]
+    g0 = edge_geometry(f, cx, cy, n, t, uv).g
     np.testing.assert_allclose(L.residual_px, edge_residuals(K, T1, w, obs.edges), atol=1e-12)
 
     def res(f=f, cx=cx, cy=cy, n=n, t=t, w=w):
-        rho = edge_geometry(f, cx, cy, n / np.linalg.norm(n), t, uv)[2]
+        rho = edge_geometry(f, cx, cy, n / np.linalg.norm(n), t, uv).rho
         return (rho - (R + 0.5 * side * w)) / g0
 
     def central(fun, h):
