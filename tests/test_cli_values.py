@@ -77,3 +77,37 @@ def test_help_lists_commands_in_workflow_order_and_the_exit_codes(capsys):
     order = [listed.index(c) for c in ("pattern", "calibrate", "calibrate-sequence", "reconstruct", "view")]
     assert order == sorted(order)
     assert "exit codes:" in out and "internal error" in out and "143 SIGTERM" in out
+
+
+@pytest.mark.parametrize("command", ["pattern", "calibrate", "calibrate-sequence", "reconstruct", "view", "synth"])
+def test_help_shows_defaults_and_no_raw_metavars(capsys, command):
+    import re
+
+    with pytest.raises(SystemExit):
+        main([command, "--help"])
+    text = capsys.readouterr().out
+    # a metavar made from an option's name with an underscore (STEP_DEG) reads as a variable, not a value
+    assert not re.findall(r"--[a-z-]+ [A-Z]+_[A-Z_]+", text), text
+    if command == "reconstruct":
+        flat = " ".join(text.split())
+        assert "--max-faces N" in flat and re.search(r"--max-faces N [^-]*default 100000", flat), flat
+    if command == "synth":
+        assert "--step-deg DEG" in text and "--distance-mm MM" in text
+
+
+def test_threads_flag_before_or_after_the_command_sets_the_thread_pools(monkeypatch, tmp_path, capsys):
+    import os
+
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        monkeypatch.delenv(var, raising=False)
+    assert main(["pattern", str(tmp_path / "t.svg"), "--r-outer", "80", "--r-inner", "50", "--threads", "1"]) == 0
+    assert os.environ["OMP_NUM_THREADS"] == "1" and os.environ["OPENBLAS_NUM_THREADS"] == "1"
+    import cv2
+
+    assert cv2.getNumThreads() == 1
+    assert main(["--threads", "2", "pattern", str(tmp_path / "u.svg"), "--r-outer", "80", "--r-inner", "50"]) == 0
+    assert os.environ["OMP_NUM_THREADS"] == "2"
+    cv2.setNumThreads(-1)
+    with pytest.raises(SystemExit) as exc:
+        main(["pattern", str(tmp_path / "v.svg"), "--r-outer", "80", "--r-inner", "50", "--threads", "0"])
+    assert exc.value.code == 2 and "--threads" in capsys.readouterr().err

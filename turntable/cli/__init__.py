@@ -51,6 +51,74 @@ def _available() -> dict[str, tuple[str, str]]:
     return out
 
 
+_UNITS = {"deg": "DEG", "px": "PX", "mm": "MM", "s": "S", "pct": "PCT"}
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Every option shows its default (unless its help already says it), and no raw metavar
+    (``STEP_DEG``): a unit where the name ends in one (``DEG``), else ``N`` (integers) or ``X``."""
+
+    def _get_help_string(self, action):
+        help_ = action.help or ""
+        default = action.default
+        if ("default" in help_ or default is None or default is False or default is argparse.SUPPRESS
+                or not action.option_strings or isinstance(action, (argparse._HelpAction, argparse._VersionAction,
+                                                                     argparse._CountAction))):
+            return help_
+        if isinstance(default, (list, tuple)):
+            default = " ".join(str(v) for v in default)
+        return f"{help_} (default {default})" if help_ else f"default {default}"
+
+    def _get_default_metavar_for_optional(self, action):
+        unit = _UNITS.get(action.dest.rsplit("_", 1)[-1]) if "_" in action.dest else None
+        if unit:
+            return unit
+        if action.type is int:
+            return "N"
+        if action.type is float:
+            return "X"
+        return action.dest.rsplit("_", 1)[-1].upper()
+
+
+def _threads_arg(value: str) -> int:
+    try:
+        n = int(value)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be a whole number of threads >= 1, got {value!r}")
+    return n
+
+
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "VECLIB_MAXIMUM_THREADS",
+                "NUMEXPR_NUM_THREADS")
+
+
+def _threads_from_argv(argv: list[str]) -> int | None:
+    """``--threads N`` anywhere on the command line, read before numpy, OpenCV and open3d load (their
+    thread pools size themselves from the environment when they start)."""
+    for i, a in enumerate(argv):
+        value = argv[i + 1] if a == "--threads" and i + 1 < len(argv) else a[10:] if a.startswith("--threads=") \
+            else None
+        if value is not None:
+            try:
+                return _threads_arg(value)
+            except argparse.ArgumentTypeError:
+                return None  # argparse reports it
+    return None
+
+
+def apply_threads(n: int) -> None:
+    """Use at most ``n`` threads: BLAS/OpenMP pools (open3d, numpy), OpenCV, and our own worker threads
+    (``recon.silhouettes`` sizes its pool by ``OMP_NUM_THREADS``)."""
+    import os
+
+    for var in _THREAD_VARS:
+        os.environ[var] = str(n)
+    if "cv2" in sys.modules:
+        sys.modules["cv2"].setNumThreads(n)
+
+
 def build_parser(commands: dict[str, tuple[str, str]]) -> argparse.ArgumentParser:
     from .. import __version__
 
@@ -58,13 +126,17 @@ def build_parser(commands: dict[str, tuple[str, str]]) -> argparse.ArgumentParse
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"turntable {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv: debug, tracebacks)")
-    # the same flag after the command (turntable reconstruct ... -v): counted into the same total
+    parser.add_argument("--threads", type=_threads_arg, metavar="N", default=None,
+                        help="use at most N threads (default: every core)")
+    # the same flags after the command (turntable reconstruct ... -v): counted into the same total
     after = argparse.ArgumentParser(add_help=False)
     after.add_argument("-v", "--verbose", action="count", dest="verbose_after", default=0,
                        help="more logging (-vv: debug, tracebacks)")
+    after.add_argument("--threads", type=_threads_arg, metavar="N", dest="threads_after", default=None,
+                       help="use at most N threads (default: every core)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, (mod, help_) in commands.items():
-        p = sub.add_parser(name, help=help_, description=help_, parents=[after])
+        p = sub.add_parser(name, help=help_, description=help_, parents=[after], formatter_class=HelpFormatter)
         importlib.import_module(mod).add_arguments(p)
         p.set_defaults(_module=mod)
     return parser
@@ -105,9 +177,15 @@ def _handle_termination() -> dict:
 def main(argv: list[str] | None = None) -> int:
     import signal
 
+    threads = _threads_from_argv(sys.argv[1:] if argv is None else list(argv))
+    if threads is not None:
+        apply_threads(threads)  # before the command modules load numpy, OpenCV, open3d
     parser = build_parser(_available())
     args = parser.parse_args(argv)
     args.verbose += getattr(args, "verbose_after", 0)
+    threads = getattr(args, "threads_after", None) or args.threads
+    if threads is not None:
+        apply_threads(threads)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     # force: rebind to the current stderr on every call (tests, or a host program, may swap it)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", force=True)
