@@ -4,11 +4,11 @@ A silhouette that looks wrong is not simply dropped: a dropped frame is a
 missing view, and a sequence that loses many neighbouring frames loses the
 views that carve a whole side of the object. So a frame is
 
-* ``"ok"``: its mask is used as it is (the doubtful pixels joined to it are
-  left unknown);
-* ``"conservative: <reason>"``: kept, with every pixel of the working volume's
-  image that is not confidently background marked unknown, so carving with
-  ``mask | unknown`` can make the hull larger there but never eat the object;
+* ``"ok"``: its mask is used as it is (the doubtful pixels joined to it
+  without crossing an edge are left unknown);
+* ``"conservative: <reason>"``: kept, with its doubtful pixels judged without
+  trusting the mask's colours, so carving with ``mask | unknown`` can make
+  the hull larger there rather than eat the object;
 * ``"rejected: <reason>"``: dropped (nothing usable: an empty or black
   frame, the volume out of view) — unless dropping it would leave more than
   ``max_gap_deg`` of the turn without a view, then it is kept conservatively.

@@ -46,18 +46,19 @@ fake: a colour the object does not show that a trusted plate matches closely,
 or the printed ink of the table plate reproduced (normalised cross-correlation
 of its texture). A colour of the object's that matches a plate (a white
 object on the white paper), a plate matched only as a shadow or only within
-the colour range of a plate edge is doubtful. In an ``"ok"`` frame the
-doubtful pixels on the mask's one-pixel outline band are unknown; in a
-``"conservative"`` frame all of them, judged without trusting the mask's
-colours or a room plate the object may have polluted. Carving with
-``mask | unknown`` rejects a voxel only where a view is sure. (Not yet for a
-white object on white paper in an ``"ok"`` frame: taking every doubtful region
-joined to the mask would keep it, but fattened every other object's hull; see
-the end of :func:`estimate_silhouettes`.) Each frame is checked (empty, touching the image border along a
-long stretch, area jumping against its neighbours, outline support: the ring
-just outside the outline must sit on an edge and match a trusted plate where
-there is one) and kept as ``"ok"``, kept as ``"conservative: ..."`` with every
-doubtful pixel unknown, or ``"rejected: ..."`` (see
+the colour range of a plate edge is doubtful. The unknown pixels are the
+doubtful ones joined to the mask without crossing an edge
+(:func:`recon.silhouette_doubt.doubt_joined`): the part of a white object
+the mask missed joins it through smooth shading, while the wall or paper
+of its colour lies beyond its outline's edge (a whole wall left unknown was
+never carved above the object). In a ``"conservative"`` frame the doubtful
+pixels are judged without trusting the mask's colours or a room plate the
+object may have polluted. Carving with ``mask | unknown`` rejects a voxel
+only where a view is sure. Each frame is checked (empty, touching the image
+border along a long stretch, area jumping against its neighbours, outline
+support: the ring just outside the outline must sit on an edge and match a
+trusted plate where there is one) and kept as ``"ok"``, kept as
+``"conservative: ..."``, or ``"rejected: ..."`` (see
 :mod:`recon.silhouette_checks`, which also keeps rejected frames where
 dropping them would leave more than 30 deg of the turn without a view).
 """
@@ -84,6 +85,7 @@ from .silhouette_doubt import (
     Plate,
     colour_dist,
     colour_set,
+    doubt_joined,
     doubtful_pixels,
     in_set,
     plate_envelope,
@@ -115,9 +117,9 @@ class SilhouetteResult:
     unknown : (V, H, W) bool
         Pixels neither confidently object nor background (never overlapping
         ``masks``). Carve with ``masks | unknown``: a view rejects a voxel only
-        where it says background with confidence. In an ``"ok"`` frame the
-        doubtful pixels on the mask's outline band; in a ``"conservative"`` frame every
-        pixel of the working volume's image that is not confidently background.
+        where it says background with confidence: the doubtful pixels joined
+        to the mask without crossing an edge (in a ``"conservative"`` frame
+        judged without trusting the mask's colours).
     quality : (V,) float64
         In [0, 1]: the outline support (fraction of a ring two pixels outside
         the outline that looks like background) times an area-consistency
@@ -517,6 +519,7 @@ class _FrameOut:
     doubtful: np.ndarray  # (h, w) bool, see doubtful_pixels
     doubtful_strict: np.ndarray  # (h, w) bool, the same with plates_only (for a conservative frame)
     support: float  # see _outline_support
+    paper: np.ndarray  # (h, w) bool: the table plate matches closely (see doubt_joined)
 
 
 def _frame_mask(img, region, base, plates: _Plates, T, tau, verified: bool) -> _FrameOut:
@@ -546,7 +549,8 @@ def _frame_mask(img, region, base, plates: _Plates, T, tau, verified: bool) -> _
                                                dist)
     ink = texture_match(img, table, tau)
     return _FrameOut(mask, doubtful_pixels(img, mask, region, ev_v, ink, False),
-                     doubtful_pixels(img, mask, region, ev_v, ink, True), _outline_support(img, mask, ev, tau))
+                     doubtful_pixels(img, mask, region, ev_v, ink, True), _outline_support(img, mask, ev, tau),
+                     table.trust & (dist[1] < tau) & (dist[5] < 2.0 * tau))
 
 
 def _noise_tau(samples: np.ndarray) -> float:
@@ -653,14 +657,9 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
         quality, status = frame_status(masks.reshape(V, -1).sum(axis=1), np.array([o.support for o in outs]),
                                        border, region_px, (W, H))
     status = fill_gaps(status, camera_azimuths_deg(T))
-    band = np.ones((3, 3), np.uint8)
     for i in range(V):
         if status[i].startswith("conservative"):
-            unknown[(i, *box)] = outs[i].doubtful_strict
+            unknown[(i, *box)] = doubt_joined(crops[i], outs[i].mask, outs[i].doubtful_strict, outs[i].paper, tau)
         elif status[i] == "ok":
-            # doubtful pixels on the outline only: every doubtful region joined to the mask (8-connected)
-            # would keep a white object on white paper, but fattens every hull over the
-            # paper and its shadows (rendered chair: model Chamfer 0.97 -> 1.47 % of the diagonal, vase hull
-            # 0.35 -> 2.4 %) while the white object's model still misses the 1 % bar (2.6-24 %)
-            unknown[(i, *box)] = outs[i].doubtful & (cv2.dilate(outs[i].mask.astype(np.uint8), band) > 0)
+            unknown[(i, *box)] = doubt_joined(crops[i], outs[i].mask, outs[i].doubtful, outs[i].paper, tau)
     return SilhouetteResult(masks=masks, unknown=unknown, quality=quality, status=status)
