@@ -105,6 +105,9 @@ def test_threads_flag_before_or_after_the_command_sets_the_thread_pools(monkeypa
     import cv2
 
     assert cv2.getNumThreads() == 1
+    from recon.silhouettes import worker_threads
+
+    assert worker_threads() == 1  # our own per-frame pool too
     assert main(["--threads", "2", "pattern", str(tmp_path / "u.svg"), "--r-outer", "80", "--r-inner", "50"]) == 0
     assert os.environ["OMP_NUM_THREADS"] == "2"
     cv2.setNumThreads(-1)

@@ -1,0 +1,178 @@
+"""Background plates of a turntable sequence: the room (image median) and the table (rectified median).
+
+The camera does not move, so the room is static in the image: the per-pixel
+median over frames is the *room plate*. The turntable disc and the printed
+target turn with the table: every frame rectified onto the plane ``Y = 0``
+(:func:`rectify_to_table`) and the median there is the *table plate*, warped
+back into each frame (:meth:`Plates.table_in_frame`). A plate is trusted where
+most frames agree with it. Used by :mod:`recon.silhouettes`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import cast
+
+import cv2
+import numpy as np
+
+from calib.camera import plane_homography
+
+from .silhouette_checks import camera_azimuths_deg
+from .silhouette_doubt import Plate, colour_dist, in_set, plate_envelope, range_dist
+
+__all__ = ["Plates", "rectify_to_table", "raster_to_table", "median_frames", "below_horizon", "table_plate",
+           "PLANE_PX_PER_MM", "PLATE_BORDER_MM", "TRUST", "STRONG"]
+
+PLANE_PX_PER_MM = 2.5  # table-plate resolution
+PLATE_BORDER_MM = 40.0  # the table plate reaches this far beyond the working volume
+TRUST = 0.6  # a plate is trusted where this fraction of frames agrees with it
+STRONG = 0.75  # ... and its explanations are hard constraints where this fraction does
+
+
+def raster_to_table(size_px: int, px_per_mm: float) -> np.ndarray:
+    """3x3 map from raster pixels (j, i, 1) to table plane (X, Z, 1); centre pixel at the origin."""
+    c = (size_px - 1) / 2.0
+    return np.array([[1.0 / px_per_mm, 0.0, -c / px_per_mm], [0.0, 1.0 / px_per_mm, -c / px_per_mm], [0.0, 0.0, 1.0]])
+
+
+def rectify_to_table(image: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, radius_mm: float,
+                     px_per_mm: float) -> np.ndarray:
+    """The table plane around the origin as a square raster, seen from above.
+
+    Pixel (i, j) of the (N, N[, 3]) result shows the plane point ``X = (j - c)
+    / px_per_mm``, ``Z = (i - c) / px_per_mm`` (``c = (N - 1) / 2``, the
+    layout of :func:`turntable.pattern.render_target_image`), ``N`` covering
+    ``[-radius_mm, radius_mm]``; bilinear, zero outside the image.
+    """
+    n = int(2 * math.ceil(radius_mm * px_per_mm) + 1)
+    M = plane_homography(K, T_cam_table) @ raster_to_table(n, px_per_mm)
+    return cv2.warpPerspective(image, M, (n, n), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def median_frames(stack: np.ndarray) -> np.ndarray:
+    """Per-pixel median (lower middle) over axis 0 of a uint8 stack."""
+    k = (len(stack) - 1) // 2
+    return np.partition(stack, k, axis=0)[k]
+
+
+def below_horizon(K, T, box, size_hw) -> np.ndarray:
+    """(h, w) bool: pixels of the box whose rays meet the table plane in front of the camera."""
+    y0, x0 = box
+    h, w = size_hw
+    a = (T[:3, :3].T @ np.linalg.inv(K))[1]  # table-Y component of the ray through (u, v, 1)
+    u = np.arange(x0, x0 + w, dtype=np.float64)
+    v = np.arange(y0, y0 + h, dtype=np.float64)
+    dy = a[0] * u[None, :] + a[1] * v[:, None] + a[2]
+    cam_above = (-T[:3, :3].T @ T[:3, 3])[1] > 0
+    return dy < 0 if cam_above else dy > 0
+
+
+ARC_DEG = 90.0  # where the views disagree, a plane point's table plate comes from those within this azimuth of it
+ARC_BIN_DEG = 10.0
+
+
+def table_plate(rect: np.ndarray, seen: np.ndarray, T: np.ndarray, tau: float, radius_px: float):
+    """The table plate: per plane point the median of the rectified frames, and where it is trusted.
+
+    ``rect`` (V, n, n, 3) uint8 and ``seen`` (V, n, n) bool come from
+    :func:`rectify_to_table`. A plane point next to the object is hidden by
+    it from the far side of the turn and seen from its own side (the camera's
+    azimuth about the table axis near the point's). Behind a plainly coloured
+    object the hiding frames all show the same colour, and over a whole turn
+    they can be the majority: a white vase made the paper behind it look like
+    the vase, and so the vase like the paper. So each point also has a median
+    over the views within ``ARC_DEG`` of its azimuth (at least a third of the
+    sequence: the nearest ones, for a partial turn); where it differs from
+    the median over all views (by more than ``tau``), it replaces it, and the
+    agreement that decides trust is counted over those views (looked for only
+    where fewer than 95 % of all views agree: elsewhere nothing hid the
+    point). Elsewhere all
+    views count: seen from its own side a point is nearer and less oblique
+    than through a gap of the object from the far side (a chair's back), so
+    the arc alone would explain the latter worse. Within the working volume
+    only (``radius_px`` from the raster's centre): beyond it the plane ``Y =
+    0`` may be air past the turntable's edge, which shows the rim from its
+    own side and the table behind from the other.
+    Returns the plate, its 3x3 envelope (lo, hi) and where it is trusted
+    (uint8): most of the counted views agree and all of them see it.
+    """
+    V, n = rect.shape[:2]
+    cam = camera_azimuths_deg(T)
+    c = (n - 1) / 2.0
+    ii, jj = np.mgrid[0:n, 0:n]
+    phi = np.degrees(np.arctan2(ii - c, jj - c))  # raster (i, j) is the plane point X = j - c, Z = i - c
+    nb = int(round(360.0 / ARC_BIN_DEG))
+    bins = np.floor(np.mod(phi + 180.0, 360.0) / ARC_BIN_DEG).astype(int) % nb
+    bins[np.hypot(ii - c, jj - c) > radius_px] = nb  # beyond the volume: one group, every view
+    least = min(V, max(5, int(math.ceil(V / 3))))
+    full = median_frames(rect)
+    lo_f, hi_f = plate_envelope(full)
+    agree = np.mean([range_dist(r, lo_f, hi_f) < tau for r in rect], axis=0)
+    all_seen = cast(np.ndarray, seen.all(axis=0))  # numpy's stubs allow a scalar for axis=0
+    # where (nearly) every view agrees nothing hid the point: the arcs are needed only elsewhere
+    doubt = (bins < nb) & (agree < 0.95)
+    plate = full.copy()
+    frames_of = []
+    for b in range(nb):
+        centre = -180.0 + (b + 0.5) * ARC_BIN_DEG
+        d = np.abs(np.mod(cam - centre + 180.0, 360.0) - 180.0)
+        sel = np.flatnonzero(d <= ARC_DEG)
+        if len(sel) < least:
+            sel = np.argsort(d, kind="stable")[:least]
+        pix = doubt & (bins == b)
+        frames_of.append((sel, pix))
+        if pix.any():
+            plate[pix] = median_frames(rect[:, pix][sel])
+    changed = colour_dist(plate, full) >= tau
+    if not changed.any():
+        return full, lo_f, hi_f, ((agree >= TRUST) & all_seen).astype(np.uint8)
+    lo, hi = plate_envelope(plate)
+    near = cv2.dilate(changed.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0  # the envelope changed there
+    for sel, pix in frames_of:
+        pix = pix & changed
+        if pix.any():
+            agree[pix] = np.mean(range_dist(rect[:, pix][sel], lo[pix], hi[pix]) < tau, axis=0)
+            all_seen[pix] = seen[:, pix][sel].all(axis=0)
+    rest = near & ~changed  # the envelope moved under them: count all views again
+    if rest.any():
+        agree[rest] = np.mean(range_dist(rect[:, rest], lo[rest], hi[rest]) < tau, axis=0)
+    return plate, lo, hi, ((agree >= TRUST) & all_seen).astype(np.uint8)
+
+
+class Plates:
+    """Room plate (image) and table plate (rectified plane), with where they are trusted."""
+
+    def __init__(self, crops, images, K, T, box, radius_mm, tau, inside, room_colours):
+        room = median_frames(crops)
+        lo, hi = plate_envelope(room)
+        agree = np.mean([range_dist(c, lo, hi) < tau for c in crops], axis=0)
+        # Inside the cylinder's image a static plate pixel may be a static object (a uniformly
+        # coloured body of revolution looks the same in every frame): trust it as background only
+        # where its colour is one the surroundings show outside the cylinder.
+        self.room = Plate(room, lo, hi, agree >= TRUST, agree >= STRONG)
+        self.room_colours = room_colours
+        verified = ~inside | in_set(room, room_colours)
+        self.room_verified = Plate(room, lo, hi, self.room.trust & verified, self.room.strong & verified)
+        self.plane_radius = radius_mm + PLATE_BORDER_MM
+        rect = np.stack([rectify_to_table(im, K, t, self.plane_radius, PLANE_PX_PER_MM)
+                         for im, t in zip(images, T, strict=True)])
+        ones = np.ones(images.shape[1:3], np.uint8)
+        seen = np.stack([rectify_to_table(ones, K, t, self.plane_radius, PLANE_PX_PER_MM) > 0 for t in T])
+        self.table, self.table_lo, self.table_hi, self.table_trust = table_plate(rect, seen, T, tau,
+                                                                                  radius_mm * PLANE_PX_PER_MM)
+        self.K, self.box = K, box
+
+    def table_in_frame(self, T: np.ndarray, size_hw) -> Plate:
+        """The table plate warped into the box of frame ``T``."""
+        h, w = size_hw
+        y0, x0 = self.box
+        n = self.table.shape[0]
+        M = np.array([[1.0, 0, -x0], [0, 1.0, -y0], [0, 0, 1.0]]) @ plane_homography(self.K, T) \
+            @ raster_to_table(n, PLANE_PX_PER_MM)
+        table, lo, hi = [cv2.warpPerspective(p, M, (w, h), flags=cv2.INTER_LINEAR, borderValue=0)
+                         for p in (self.table, self.table_lo, self.table_hi)]
+        trust = cv2.warpPerspective(self.table_trust, M, (w, h), flags=cv2.INTER_NEAREST, borderValue=0) > 0
+        trust &= below_horizon(self.K, T, self.box, size_hw)
+        return Plate(table, lo, hi, trust, trust)
