@@ -360,6 +360,7 @@ def test_reconstruct_prints_the_exif_check():
     from types import SimpleNamespace
 
     from turntable.cli.reconstruct import print_summary
+    from turntable.stages.summary import ReconstructSummary
 
     summary = {"frames_used": 3, "focal_px": 1100.0, "mode": "turntable",
                "exif_focal": {"focal_35mm": 26.0, "focal_px": 1000.0, "photos": 3, "calibrated_vs_exif_pct": 10.0,
@@ -367,7 +368,7 @@ def test_reconstruct_prints_the_exif_check():
                "mesh": {"vertices": 8, "faces": 12, "watertight": True, "volume_cm3": 1.0, "extent_mm": [1, 1, 1]},
                "fusion": "off", "time_s": {}, "files": {}}
     out = io.StringIO()
-    print_summary(SimpleNamespace(summary=summary, out="OUT", frames_skipped={}), out)
+    print_summary(SimpleNamespace(summary=ReconstructSummary.from_json(summary, out="OUT")), out)
     text = out.getvalue()
     assert "EXIF focal      26 mm equivalent = 1000.0 px (calibrated +10.0 %)" in text
     assert "warning         calibrated focal length 1100.0 px and the EXIF focal length" in text

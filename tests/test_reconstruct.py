@@ -207,6 +207,19 @@ def test_radii_optional_with_cameras(scene, tmp_path, gt_radius_mm, capsys):
     assert "working volume grows: radius 32 mm" in err and err.index("carving") < err.index("working volume grows")
 
 
+def test_printed_summary_is_summary_json(scene, tmp_path, capsys):
+    """One ReconstructSummary: what the screen shows is summary.json read back, line for line, and the
+    file holds what the screen shows (the recording among the files, the total time)."""
+    from turntable.stages.summary import ReconstructSummary
+
+    out = tmp_path / "scan"
+    assert main(_known_cameras_args(scene, out)) == 0
+    printed = [line for line in capsys.readouterr().out.splitlines() if line]
+    s = json.loads((out / "summary.json").read_text())
+    assert "recording" in s["files"] and s["time_s"]["total"] >= s["time_s"]["carving"] > 0
+    assert printed == ReconstructSummary.from_json(s, out=str(out)).lines()
+
+
 def test_radii_required_without_cameras(scene, tmp_path, capsys):
     out = tmp_path / "scan"
     code = main(["reconstruct", str(scene / "images"), "--out", str(out), "--quiet"])

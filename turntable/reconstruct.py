@@ -43,6 +43,7 @@ from .stages import summary as summary_stage
 from .stages.cache import StageCache, file_digest, files_digest, stage_key
 from .stages.options import MIN_VIEWS, ReconstructOptions
 from .stages.silhouettes import GREY  # noqa: F401  (kept importable from here)
+from .stages.summary import ReconstructSummary
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +56,7 @@ class ReconstructResult:
     files: dict[str, Path]
     frames_used: list[str]
     frames_skipped: dict[str, str]
-    summary: dict = field(default_factory=dict)
+    summary: ReconstructSummary | None = None  # also OUT/summary.json; None only before a run finishes
     exit_code: int = 0  # see EXIT_* below
     failed_checks: list[str] = field(default_factory=list)
     unreadable: list[str] = field(default_factory=list)  # input images that could not be read
@@ -190,15 +191,11 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
             files["recording"] = recorder.save(staging / "recording.rrd")
     files = {k: out / p.relative_to(staging) for k, p in files.items()}  # where they will be once published
     files["summary"] = out / "summary.json"
-    summary = summary_stage.summary(seq, names, skipped, mesh, progress, fusion_note, files)
-    summary["mesh"]["pieces"] = stats.n_bodies
-    summary["working_volume"] = carved.report
-    summary["silhouettes"] = {"rejected": rejected, "conservative": conservative}
-    summary["failed_checks"] = failed
-    summary["exif_focal"] = exif
-    summary["work_size"] = ws.report()
-    summary["time_s"]["total"] = round(time.perf_counter() - t0, 2)
-    atomic_write_text(staging / "summary.json", json.dumps(summary, indent=1) + "\n")
+    times = {**progress.times_s, "total": time.perf_counter() - t0}
+    summary = summary_stage.summarise(out=out, seq=seq, names=names, skipped=skipped, mesh=mesh, stats=stats,
+                                      fusion_note=fusion_note, carved=carved, failed=failed, exif=exif,
+                                      work_size=ws.report(), times_s=times, files=files)
+    atomic_write_text(staging / "summary.json", json.dumps(summary.to_json(), indent=1) + "\n")
     exit_code = EXIT_CHECK_FAILED if failed else EXIT_UNREADABLE if unreadable else EXIT_OK
     return ReconstructResult(out=out, files=files, frames_used=names, frames_skipped=skipped,
                              summary=summary, exit_code=exit_code, failed_checks=failed,

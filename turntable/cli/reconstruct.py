@@ -7,7 +7,6 @@ import sys
 from pathlib import Path
 
 from ..errors import UserError
-from ..images import focal_warning
 from ..progress import Progress
 from ..reconstruct import ReconstructOptions, reconstruct
 from ..worksize import parse_work_size
@@ -88,52 +87,8 @@ def options_from_args(args) -> ReconstructOptions:
 
 
 def print_summary(res, stream=None) -> None:
-    s = res.summary
-    w = (stream or sys.stdout).write
-    w(f"\nturntable reconstruct: {res.out}\n")
-    w(f"  frames used     {s['frames_used']}\n")
-    for name, why in res.frames_skipped.items():
-        w(f"  skipped         {name}: {why}\n")
-    sf = f" ± {s['focal_std_px']:.2f}" if s.get("focal_std_px") is not None else ""
-    w(f"  focal length    {s['focal_px']:.2f}{sf} px   ({s['mode']} mode)\n")
-    ex = s.get("exif_focal")
-    if ex:
-        w(f"  EXIF focal      {ex['focal_35mm']:g} mm equivalent = {ex['focal_px']:.1f} px "
-          f"(calibrated {ex['calibrated_vs_exif_pct']:+.1f} %)\n")
-        for line in (ex.get("note"), focal_warning(s["focal_px"], ex)):
-            if line:
-                w(f"  warning         {line}\n")
-    for line in s.get("warnings", []):
-        w(f"  warning         {line}\n")
-    if s.get("rms_px") is not None:
-        w(f"  edge RMS        {s['rms_px']:.3f} px\n")
-    ws = s.get("work_size")
-    if ws:
-        full = ("full size" if (ws["width"], ws["height"]) == (ws["full_width"], ws["full_height"]) else
-                f"{ws['scale']:.3f} of {ws['full_width']} x {ws['full_height']}")
-        w(f"  work size       {ws['width']} x {ws['height']} px ({full}; {ws['why']}); rings and calibration "
-          f"at full size\n")
-    m = s["mesh"]
-    ext = " x ".join(f"{v:.1f}" for v in m["extent_mm"])
-    w(f"  mesh            {m['vertices']} vertices, {m['faces']} faces, "
-      f"{'watertight' if m['watertight'] else 'NOT watertight'}, {m.get('pieces', 1)} piece(s), "
-      f"{m['volume_cm3']:.1f} cm³, {ext} mm\n")
-    v = s.get("working_volume") or {}
-    if v:
-        w(f"  working volume  radius {v['radius_mm']:.0f} mm, height {v['height_mm']:.0f} mm "
-          f"(first guess: {v['first_guess']}; the cameras allow {v['max_radius_mm']:.0f} x {v['max_height_mm']:.0f})\n")
-        for g in v["grown"]:
-            w(f"  grown           {g}\n")
-        for note in v.get("notes", []):
-            w(f"  note            {note}\n")
-    for name, why in (s.get("silhouettes") or {}).get("conservative", {}).items():
-        w(f"  conservative    {name}: {why}\n")
-    w(f"  fusion          {s['fusion']}\n")
-    w("  time            " + ", ".join(f"{k} {v:.1f} s" for k, v in s["time_s"].items()) + "\n")
-    for k, p in sorted(s["files"].items()):
-        w(f"  {k:<15} {p}\n")
-    for why in s.get("failed_checks", []):
-        w(f"  !! CHECK FAILED {why}\n")
+    """Print the run's summary (the same fields as ``OUT/summary.json``)."""
+    (stream or sys.stdout).write("\n" + "\n".join(res.summary.lines()) + "\n")
 
 
 def run(args) -> int:
