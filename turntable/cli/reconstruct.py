@@ -17,6 +17,15 @@ def add_arguments(parser) -> None:
     parser.add_argument("input", metavar="INPUT", help="folder of images (natural sort) or a video file")
     add_target_arguments(parser, required=False, optional_note="; optional with --cameras")  # see options_from_args
     parser.add_argument("--out", required=True, metavar="OUT", help="output folder")
+    add_job_arguments(parser)
+    parser.add_argument("--spawn", action="store_true", help="open the Rerun viewer on the recording")
+    parser.add_argument("--overwrite", action="store_true", help="recompute every stage")
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+
+
+def add_job_arguments(parser) -> None:
+    """What one reconstruction is asked to do beyond INPUT, OUT and the target: shared with ``batch``
+    (read back by :func:`options_from_args`)."""
     parser.add_argument("--step-deg", type=float, metavar="D",
                         help="known turntable step per frame (motorised tables); checked against the marks")
     parser.add_argument("--masks", metavar="DIR", help="use these silhouettes (matched to frames by file stem)")
@@ -45,9 +54,6 @@ def add_arguments(parser) -> None:
     parser.add_argument("--copy-images", action="store_true",
                         help="with the exports: copy the photos used into OUT/images (default: hard links where OUT "
                              "is on the photos' filesystem, copies elsewhere; video frames are always written)")
-    parser.add_argument("--spawn", action="store_true", help="open the Rerun viewer on the recording")
-    parser.add_argument("--overwrite", action="store_true", help="recompute every stage")
-    parser.add_argument("-q", "--quiet", action="store_true", help="no progress output")
 
 
 def options_from_args(args) -> ReconstructOptions:
