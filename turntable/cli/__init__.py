@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "calibrate-sequence": ("turntable.cli.sequence", "calibrate a whole turntable sequence into cameras.json"),
     "reconstruct": ("turntable.cli.reconstruct",
                     "photos of an object on the turntable -> coloured mesh + Rerun recording"),
+    "batch": ("turntable.cli.batch", "reconstruct every object of a folder as Ray tasks (locally or on a cluster)"),
     "view": ("turntable.cli.view", "open a Rerun recording written by reconstruct"),
     "synth": ("turntable.cli.synth", "render a synthetic turntable sequence with ground truth"),
 }
