@@ -1,0 +1,185 @@
+"""`turntable batch` on a local Ray: four small rendered objects, one broken on purpose.
+
+Each job is an 8-frame 320x240 sequence with its true cameras and masks, carved at
+32^3 without fusion (a few seconds). One batch run is shared by most tests; while
+it runs, the test kills the worker of one object with SIGKILL, and Ray's retry
+must still finish it. A second run with --resume redoes only what changed.
+The last test joins a two-node ``ray.cluster_utils.Cluster`` through --address.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import signal
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from turntable.batch import THUMB_PX, read_settings
+from turntable.cli import main
+from turntable.errors import UserError
+from turntable.synth import SynthOptions, make_sequence
+
+ray = pytest.importorskip("ray")
+
+JOB_FLAGS = ["--cameras", "cameras_gt.json", "--masks", "masks", "--resolution", "32", "--no-fusion"]
+KILL_AFTER_S = 0.5  # into the job: past the worker's start, well before its end (a job takes seconds)
+
+
+def _render(folder: Path, obj: str, seed: int) -> None:
+    make_sequence(folder, SynthOptions(object=obj, frames=8, step_deg=45.0, width=320, height=240, focal_px=375.0,
+                                       supersample=1, seed=seed))
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    base = tmp_path_factory.mktemp("batch")
+    src = base / "src"
+    _render(src / "vase", "vase", 1)
+    _render(src / "cup", "cup", 2)
+    root = base / "root"
+    shutil.copytree(src / "vase", root / "a")
+    shutil.copytree(src / "cup", root / "b")
+    shutil.copytree(src / "vase", root / "c")
+    (root / "c" / "turntable.toml").write_text("resolution = 40  # this object's own setting\n")
+    broken = root / "d"  # two frames: too few to reconstruct
+    shutil.copytree(src / "vase", broken)
+    for p in sorted((broken / "images").iterdir())[2:]:
+        p.unlink()
+    return root
+
+
+def _kill_first_attempt(marker: Path, killed: list) -> None:
+    """SIGKILL the worker that runs ``marker``'s job, once, mid-job (a worker lost as a node or OOM loses it)."""
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            line = marker.read_text().split()
+        except OSError:
+            line = []
+        if line:
+            time.sleep(KILL_AFTER_S)
+            os.kill(int(line[0]), signal.SIGKILL)
+            killed.append(int(line[0]))
+            return
+        time.sleep(0.05)
+
+
+@pytest.fixture(scope="module")
+def first(root, tmp_path_factory):
+    out = tmp_path_factory.mktemp("out") / "batch"
+    killed: list[int] = []
+    killer = threading.Thread(target=_kill_first_attempt, args=(out / ".batch" / "b.running", killed), daemon=True)
+    killer.start()
+    code = main(["batch", str(root), "--out", str(out), *JOB_FLAGS, "--retries", "1", "-q"])
+    killer.join(timeout=5)
+    rows = {r["object"]: r for r in json.loads((out / "batch.json").read_text())["rows"]}
+    return code, out, rows, killed
+
+
+def test_statuses_and_exit_code(first):
+    code, out, rows, _ = first
+    assert code == 1  # d failed
+    assert {k: r["status"] for k, r in rows.items()} == {"a": "ok", "b": "ok", "c": "ok", "d": "failed"}
+    assert "only 2 frame(s) could be calibrated" in rows["d"]["reason"]
+    assert rows["d"]["attempts"] == 1  # bad input is not retried
+    for k in "abc":
+        assert (out / k / "model.glb").is_file() and (out / k / "summary.json").is_file()
+    assert not (out / "d").exists() or not (out / "d" / "model.glb").exists()
+    assert not list((out / ".batch").glob("*.running"))
+
+
+def test_killed_worker_is_retried(first):
+    _, _, rows, killed = first
+    assert len(killed) == 1, "the test never saw b's job start"
+    assert rows["b"]["status"] == "ok"
+    assert rows["b"]["attempts"] == 2  # the killed attempt and the retry
+
+
+def test_object_settings_override_the_command_line(first, tmp_path):
+    _, out, rows, _ = first
+    assert rows["c"]["mesh_faces"] != rows["a"]["mesh_faces"]  # same photos, its resolution 40 not 32
+    (tmp_path / "turntable.toml").write_text("colour = 1\n")
+    with pytest.raises(UserError, match="turntable.toml.*unknown setting 'colour'"):
+        read_settings(tmp_path)
+    (tmp_path / "turntable.toml").write_text("resolution = '64'\n")
+    with pytest.raises(UserError, match="expected int"):
+        read_settings(tmp_path)
+    (tmp_path / "turntable.toml").write_text("r-outer = 80\nfusion = false\nmasks = 'm'\n")
+    assert read_settings(tmp_path) == {"r_outer": 80, "no_fusion": True, "masks": str(tmp_path / "m")}
+
+
+def test_report_files(first):
+    _, out, rows, _ = first
+    doc = json.loads((out / "batch.json").read_text())
+    assert doc["counts"]["ok"] == 3 and doc["counts"]["failed"] == 1
+    with open(out / "batch.csv") as fh:
+        table = list(csv.DictReader(fh))
+    assert [r["object"] for r in table] == ["a", "b", "c", "d"]
+    a = next(r for r in table if r["object"] == "a")
+    assert int(a["frames_used"]) == 8 and float(a["focal_px"]) == pytest.approx(375.0)
+    assert int(a["mesh_faces"]) > 100 and float(a["volume_cm3"]) > 0 and float(a["time_total_s"]) > 0
+    page = (out / "index.html").read_text()
+    for k in "abcd":
+        assert f"<h2>{k}</h2>" in page
+    assert "no model" in page and "only 2 frame(s)" in page
+    for k in "abc":
+        img = cv2.imread(str(out / rows[k]["thumbnail"]))
+        assert img.shape == (THUMB_PX, THUMB_PX, 3)
+        assert (np.abs(img.astype(int) - 245).sum(2) > 30).mean() > 0.05  # the object covers part of the picture
+
+
+def test_batch_output_equals_a_separate_run(first, root, tmp_path):
+    _, out, _, _ = first
+    sep = tmp_path / "a"
+    obj = root / "a"
+    assert main(["reconstruct", str(obj / "images"), "--cameras", str(obj / "cameras_gt.json"), "--masks",
+                 str(obj / "masks"), "--resolution", "32", "--no-fusion", "--out", str(sep), "-q"]) == 0
+    for name in ("model.ply", "model.glb", "cameras.json"):
+        assert (sep / name).read_bytes() == (out / "a" / name).read_bytes(), name
+
+
+def test_resume_redoes_only_what_changed(first, root):
+    _, out, _, _ = first
+    before = {k: (out / k / "model.glb").stat().st_mtime_ns for k in "abc"}
+    img = sorted((root / "a" / "images").iterdir())[0]
+    os.utime(img, ns=(img.stat().st_atime_ns, img.stat().st_mtime_ns + 10**9))  # a's input changed
+    code = main(["batch", str(root), "--out", str(out), *JOB_FLAGS, "--resume", "-q"])
+    assert code == 1  # d still fails
+    rows = {r["object"]: r for r in json.loads((out / "batch.json").read_text())["rows"]}
+    assert [k for k, r in rows.items() if r["resumed"]] == ["b", "c"]
+    assert (out / "b" / "model.glb").stat().st_mtime_ns == before["b"]
+    assert (out / "c" / "model.glb").stat().st_mtime_ns == before["c"]
+    assert (out / "a" / "model.glb").stat().st_mtime_ns != before["a"] and rows["a"]["status"] == "ok"
+
+
+def test_bad_arguments_exit_2(root, tmp_path):
+    assert main(["batch", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
+    assert main(["batch", str(root), "--out", str(tmp_path / "o"), "--retries", "-1"]) == 2
+    assert main(["batch", str(root), "--out", str(tmp_path / "o"), *JOB_FLAGS[:4], "--resolution", "5"]) == 2
+
+
+def test_jobs_spread_over_two_nodes(root, tmp_path):
+    from ray.cluster_utils import Cluster
+
+    small = tmp_path / "root"
+    for k in "abc":
+        shutil.copytree(root / k, small / k)
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+    try:
+        cluster.add_node(num_cpus=1)
+        cluster.wait_for_nodes()
+        out = tmp_path / "out"
+        code = main(["batch", str(small), "--out", str(out), *JOB_FLAGS, "--address", cluster.address, "-q"])
+        assert code == 0
+        rows = json.loads((out / "batch.json").read_text())["rows"]
+        assert len({r["node"] for r in rows}) == 2, [r["node"] for r in rows]
+    finally:
+        cluster.shutdown()
