@@ -19,6 +19,7 @@ _EXPORTS = {
     "raycast": ["raycasting_scene", "render_depth"],
     "meshing": ["mesh_from_hull", "finalize_mesh", "remesh_watertight", "mesh_stats", "MeshStats"],
     "colorize": ["color_vertices", "visible_vertices"],
+    "texture": ["TexturedMesh", "texture_mesh", "bake_texture", "uv_atlas", "render_albedo"],
     "export": ["export_mesh", "export_colmap", "export_nerfstudio"],
 }
 _WHERE = {name: mod for mod, names in _EXPORTS.items() for name in names}

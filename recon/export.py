@@ -42,6 +42,7 @@ import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import trimesh
@@ -50,8 +51,11 @@ from scipy.spatial.transform import Rotation
 from .fileio import atomic_write_bytes
 from .types import TableMesh
 
-__all__ = ["export_mesh", "export_colmap", "export_nerfstudio", "glb_bytes", "srgb_to_linear", "ColmapTracks",
-           "surface_tracks", "sample_surface", "project_photo_px", "MAX_TRACK_POINTS"]
+if TYPE_CHECKING:
+    from .texture import TexturedMesh
+
+__all__ = ["export_mesh", "png_bytes", "export_colmap", "export_nerfstudio", "glb_bytes", "srgb_to_linear",
+           "ColmapTracks", "surface_tracks", "sample_surface", "project_photo_px", "MAX_TRACK_POINTS"]
 
 MM_PER_M = 1000.0
 # glTF material of a scan: vertex colours times white, dielectric, matte.
@@ -66,8 +70,15 @@ _CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 MAX_TRACK_POINTS = 50_000
 
 
-def export_mesh(mesh: TableMesh, out_dir: str | os.PathLike, *, stem: str = "model") -> dict[str, Path]:
+def export_mesh(mesh: TableMesh, out_dir: str | os.PathLike, *, stem: str = "model",
+                textured: TexturedMesh | None = None) -> dict[str, Path]:
     """Write ``<stem>.glb``, ``<stem>.ply`` and ``<stem>.obj`` in metres.
+
+    With ``textured`` (the same surface with a UV atlas and its texture,
+    :mod:`recon.texture`), the GLB carries the texture as its material's
+    ``baseColorTexture`` (no ``COLOR_0``) and the OBJ names ``<stem>.mtl``,
+    whose ``map_Kd`` is ``<stem>_albedo.png``; the PLY keeps ``mesh``
+    (watertight, vertex colours).
 
     Parameters
     ----------
@@ -82,19 +93,61 @@ def export_mesh(mesh: TableMesh, out_dir: str | os.PathLike, *, stem: str = "mod
     Returns
     -------
     dict
-        ``{"glb": path, "ply": path, "obj": path}``.
+        ``{"glb": path, "ply": path, "obj": path}``, and ``"mtl"``, ``"texture"`` with ``textured``.
     """
     V, F, N, C = _mesh_arrays(mesh)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {ext: out / f"{stem}.{ext}" for ext in ("glb", "ply", "obj")}
-    atomic_write_bytes(paths["glb"], glb_bytes(V / MM_PER_M, F, N, C))
     tm = _trimesh_m(V, F, N, C)
     atomic_write_bytes(paths["ply"], trimesh.exchange.ply.export_ply(tm, encoding="binary", vertex_normal=True))
+    if textured is not None:
+        paths.update(_export_textured(textured, out, stem))
+        return paths
+    atomic_write_bytes(paths["glb"], glb_bytes(V / MM_PER_M, F, N, C))
     obj = trimesh.exchange.obj.export_obj(tm, include_normals=True, include_color=C is not None,
                                           include_texture=False, header=None)
     atomic_write_bytes(paths["obj"], obj.encode())
     return paths
+
+
+def png_bytes(rgb: np.ndarray) -> bytes:
+    """An (H, W, 3) uint8 RGB image as a PNG file."""
+    import cv2
+
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(np.asarray(rgb, np.uint8), cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise ValueError("could not encode the texture as PNG")
+    return buf.tobytes()
+
+
+def _export_textured(textured: TexturedMesh, out: Path, stem: str) -> dict[str, Path]:
+    """``<stem>.glb`` with the texture embedded, ``<stem>.obj`` + ``.mtl`` + ``<stem>_albedo.png``."""
+    V, F, N, _ = _mesh_arrays(textured.mesh)
+    uv = np.asarray(textured.texcoords, np.float64)
+    if uv.shape != (len(V), 2):
+        raise ValueError(f"texcoords: expected {(len(V), 2)}, got {uv.shape}")
+    png = png_bytes(textured.texture_rgb)
+    paths = {"glb": out / f"{stem}.glb", "obj": out / f"{stem}.obj", "mtl": out / f"{stem}.mtl",
+             "texture": out / f"{stem}_albedo.png"}
+    atomic_write_bytes(paths["glb"], glb_bytes(V / MM_PER_M, F, N, texcoords=uv, texture_png=png))
+    atomic_write_bytes(paths["texture"], png)
+    atomic_write_bytes(paths["mtl"], (f"# turntable: matte, the photo texture (sRGB)\nnewmtl scan\n"
+                                      f"Ka 0 0 0\nKd 1 1 1\nKs 0 0 0\nNs 1\nillum 1\nd 1\n"
+                                      f"map_Kd {paths['texture'].name}\n").encode())
+    lines = [f"# turntable: metres, +Y up, table frame\nmtllib {paths['mtl'].name}\no model\n",
+             _rows("v", V / MM_PER_M, "{:.7g}"),
+             _rows("vt", np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]), "{:.7g}"),  # OBJ: v up from the bottom row
+             _rows("vn", N, "{:.6g}"), "usemtl scan\n"]
+    f1 = np.asarray(F, np.int64) + 1
+    lines.append("".join(f"f {a}/{a}/{a} {b}/{b}/{b} {c}/{c}/{c}\n" for a, b, c in f1.tolist()))
+    atomic_write_bytes(paths["obj"], "".join(lines).encode())
+    return paths
+
+
+def _rows(tag: str, a: np.ndarray, fmt: str) -> str:
+    line = tag + (" " + fmt) * a.shape[1] + "\n"
+    return "".join(line.format(*row) for row in a.tolist())
 
 
 def _mesh_arrays(mesh: TableMesh):
@@ -128,7 +181,8 @@ def srgb_to_linear(c: np.ndarray) -> np.ndarray:
 
 
 def glb_bytes(vertices_m: np.ndarray, faces: np.ndarray, normals: np.ndarray,
-              colors_rgb: np.ndarray | None = None) -> bytes:
+              colors_rgb: np.ndarray | None = None, *, texcoords: np.ndarray | None = None,
+              texture_png: bytes | None = None) -> bytes:
     """A binary glTF 2.0 file of one triangle mesh with one non-metallic material.
 
     Parameters
@@ -140,8 +194,15 @@ def glb_bytes(vertices_m: np.ndarray, faces: np.ndarray, normals: np.ndarray,
     normals : (N, 3) float
         Unit vertex normals.
     colors_rgb : (N, 3) uint8, optional
-        sRGB vertex colours; stored as linear float RGBA ``COLOR_0``.
+        sRGB vertex colours; stored as linear float RGBA ``COLOR_0``. Not with a texture
+        (``COLOR_0`` would multiply it).
+    texcoords : (N, 2) float, optional
+        ``TEXCOORD_0`` (glTF: origin at the image's top-left corner, v down), with ``texture_png``.
+    texture_png : bytes, optional
+        The sRGB base-colour texture as a PNG file, embedded in the binary chunk.
     """
+    if (texcoords is None) != (texture_png is None) or (texture_png is not None and colors_rgb is not None):
+        raise ValueError("give texcoords with texture_png, and no colors_rgb with a texture")
     n = np.asarray(normals, np.float64)
     length = np.linalg.norm(n, axis=1, keepdims=True)
     n = np.where(length > 1e-12, n / np.maximum(length, 1e-12), (0.0, 1.0, 0.0))  # glTF: NORMAL must be unit
@@ -151,6 +212,9 @@ def glb_bytes(vertices_m: np.ndarray, faces: np.ndarray, normals: np.ndarray,
         lin = srgb_to_linear(np.asarray(colors_rgb, np.float64) / 255.0)
         arrays.append(np.hstack([lin, np.ones((len(lin), 1))]).astype(np.float32))
         attributes["COLOR_0"] = 2
+    if texcoords is not None:
+        arrays.append(np.asarray(texcoords, np.float32).reshape(-1, 2))
+        attributes["TEXCOORD_0"] = len(arrays) - 1
     arrays.append(np.asarray(faces, np.uint32).ravel())
 
     views, accessors, offset = [], [], 0
@@ -165,6 +229,18 @@ def glb_bytes(vertices_m: np.ndarray, faces: np.ndarray, normals: np.ndarray,
             acc["min"], acc["max"] = a.min(axis=0).tolist(), a.max(axis=0).tolist()
         accessors.append(acc)
         offset += a.nbytes  # every array is a multiple of 4 bytes long
+    material = dict(SCAN_MATERIAL)
+    blobs = [a.tobytes() for a in arrays]
+    extra: dict = {}
+    if texture_png is not None:  # the image's own buffer view (no target), padded to 4 bytes
+        views.append({"buffer": 0, "byteOffset": offset, "byteLength": len(texture_png)})
+        blobs.append(texture_png + b"\0" * (-len(texture_png) % 4))
+        offset += len(blobs[-1])
+        extra = {"images": [{"bufferView": len(views) - 1, "mimeType": "image/png"}],
+                 "samplers": [{"magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wrapT": 33071}],
+                 "textures": [{"sampler": 0, "source": 0}]}
+        material["pbrMetallicRoughness"] = {**SCAN_MATERIAL["pbrMetallicRoughness"],  # type: ignore[dict-item]
+                                            "baseColorTexture": {"index": 0}}
     gltf = {
         "asset": {"version": "2.0", "generator": "turntable recon.export",
                   "extras": {"units": "m", "frame": "table: origin at the pattern centre, +Y up"}},
@@ -173,14 +249,15 @@ def glb_bytes(vertices_m: np.ndarray, faces: np.ndarray, normals: np.ndarray,
         "nodes": [{"mesh": 0, "name": "model"}],
         "meshes": [{"name": "model", "primitives": [
             {"attributes": attributes, "indices": len(arrays) - 1, "material": 0, "mode": 4}]}],
-        "materials": [SCAN_MATERIAL],
+        "materials": [material],
         "accessors": accessors,
         "bufferViews": views,
         "buffers": [{"byteLength": offset}],
+        **extra,
     }
     js = json.dumps(gltf, separators=(",", ":")).encode()
     js += b" " * (-len(js) % 4)
-    binary = b"".join(a.tobytes() for a in arrays)
+    binary = b"".join(blobs)
     total = 12 + 8 + len(js) + 8 + len(binary)
     return b"".join([struct.pack("<4sII", b"glTF", 2, total),
                      struct.pack("<I4s", len(js), b"JSON"), js,

@@ -90,7 +90,7 @@ def test_help_shows_defaults_and_no_raw_metavars(capsys, command):
     assert not re.findall(r"--[a-z-]+ [A-Z]+_[A-Z_]+", text), text
     if command == "reconstruct":
         flat = " ".join(text.split())
-        assert "--max-faces N" in flat and re.search(r"--max-faces N [^-]*default 100000", flat), flat
+        assert "--max-faces N" in flat and re.search(r"--max-faces N [^-]*default 50000", flat), flat
     if command == "synth":
         assert "--step-deg DEG" in text and "--distance-mm MM" in text
 

@@ -178,16 +178,22 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
 
     with progress.stage("colour"):
         mesh = color_vertices(mesh, images_rgb, K, Ts, masks=masks)
+    textured = None
+    if opts.texture:
+        from recon.texture import texture_mesh
+
+        with progress.stage("texture"):
+            textured = texture_mesh(mesh, images_rgb, K, Ts, masks=masks, size=opts.texture_size)
 
     from recon.meshing import mesh_stats
 
     stats = mesh_stats(mesh)
     failed = summary_stage.failed_checks(stats, carved.report)
-    files = export.write_outputs(staging, opts, seq, names, mesh, fused, progress)
+    files = export.write_outputs(staging, opts, seq, names, mesh, fused, progress, textured=textured)
     if recorder is not None:
         with progress.stage("recording"):
             record_reconstruction(recorder, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh,
-                                  conics, ws)
+                                  conics, ws, textured=textured)
             files["recording"] = recorder.save(staging / "recording.rrd")
     files = {k: out / p.relative_to(staging) for k, p in files.items()}  # where they will be once published
     files["summary"] = out / "summary.json"

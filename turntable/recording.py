@@ -48,6 +48,8 @@ SCALARS = {"calibration/edge_rms_px": "edge RMS (px)", "calibration/angle_deg": 
 THUMBNAIL_PX = 160
 #: Colour of the current frame's frustum (the others are drawn in the viewer's default colour).
 CURRENT_CAMERA_RGB = (255, 120, 0)
+#: Largest side of a mesh texture in the recording, texels (a 2048² texture would add 12 MB, raw).
+TEXTURE_PX = 1024
 #: The 3D view's eye, in farthest-camera distances from the object (:func:`eye_for`).
 EYE_DISTANCE = 2.0
 
@@ -113,12 +115,23 @@ class Recorder:
         self.rec.log("world/target", rr.LineStrips3D(strips, colors=[[20, 20, 20], [20, 20, 20]], radii=0.6),
                      static=True)
 
-    def log_mesh(self, entity: str, vertices_table, faces, normals=None, colors_rgb=None) -> None:
+    def log_mesh(self, entity: str, vertices_table, faces, normals=None, colors_rgb=None, texcoords=None,
+                 texture_rgb=None) -> None:
+        """A mesh (table frame, mm) with vertex colours, or a texture (``texcoords`` (N, 2), top-left origin as
+        glTF and Rerun; ``texture_rgb`` (S, S, 3) uint8 sRGB, logged at most ``TEXTURE_PX`` on a side)."""
         rr = self._rr
         kw = {}
         if normals is not None:
             kw["vertex_normals"] = np.asarray(normals, np.float32)
-        if colors_rgb is not None:
+        if texture_rgb is not None:
+            import cv2
+
+            tex = np.asarray(texture_rgb, np.uint8)
+            if max(tex.shape[:2]) > TEXTURE_PX:
+                tex = cv2.resize(tex, (TEXTURE_PX, TEXTURE_PX), interpolation=cv2.INTER_AREA)
+            kw["vertex_texcoords"] = np.asarray(texcoords, np.float32)
+            kw["albedo_texture"] = tex
+        elif colors_rgb is not None:
             kw["vertex_colors"] = np.asarray(colors_rgb, np.uint8)
         self.rec.log(f"world/{entity}", rr.Mesh3D(vertex_positions=np.asarray(vertices_table, np.float32),
                                                   triangle_indices=np.asarray(faces, np.uint32), **kw),
@@ -252,8 +265,9 @@ def eye_for(vertices_table, Ts) -> tuple[np.ndarray, np.ndarray]:
 
 
 def record_reconstruction(rec: Recorder, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh, conics,
-                          ws) -> None:
-    """The recording shows the work images with their camera ``K`` and the rings mapped onto them."""
+                          ws, textured=None) -> None:
+    """The recording shows the work images with their camera ``K`` and the rings mapped onto them; the final
+    mesh with its texture when ``textured`` (a :class:`recon.texture.TexturedMesh` of ``mesh``) is given."""
     if opts.spec is not None:
         rec.log_target(opts.spec.r_outer_mm, opts.spec.r_inner_mm)
     W, H = ws.work
@@ -273,5 +287,10 @@ def record_reconstruction(rec: Recorder, opts, seq, names, images_rgb, masks, K,
     rec.log_mesh("hull", hull_mesh.vertices_table, hull_mesh.faces, hull_mesh.normals_table)
     if fused is not None and len(fused.pts_table):
         rec.log_points("points", fused.pts_table, fused.colors_rgb)
-    rec.log_mesh("mesh", mesh.vertices_table, mesh.faces, mesh.normals_table, mesh.colors_rgb)
+    if textured is None:
+        rec.log_mesh("mesh", mesh.vertices_table, mesh.faces, mesh.normals_table, mesh.colors_rgb)
+    else:
+        m = textured.mesh
+        rec.log_mesh("mesh", m.vertices_table, m.faces, m.normals_table, texcoords=textured.texcoords,
+                     texture_rgb=textured.texture_rgb)
     rec.frame_view(eye, target)

@@ -34,7 +34,11 @@ def add_job_arguments(parser) -> None:
                         help="OpenCV calibration (YAML/JSON) to use as known intrinsics")
     parser.add_argument("--resolution", type=int, default=256, metavar="N",
                         help="carving grid resolution (default 256)")
-    parser.add_argument("--max-faces", type=int, default=100_000, metavar="N", help="decimate to at most N faces")
+    parser.add_argument("--max-faces", type=int, default=50_000, metavar="N", help="decimate to at most N faces")
+    parser.add_argument("--texture-size", type=int, default=2048, metavar="N",
+                        help="side of the baked photo texture, texels (power of two, 256-8192)")
+    parser.add_argument("--no-texture", action="store_true",
+                        help="vertex colours only: no UV atlas, no texture (the model before 2026-12)")
     parser.add_argument("--every", type=int, default=1, metavar="N",
                         help="use every N-th frame (videos, dense folders)")
     parser.add_argument("--frames", type=int, metavar="N",
@@ -63,6 +67,9 @@ def options_from_args(args) -> ReconstructOptions:
         raise UserError(f"--max-rejections must be 0 or more, got {args.max_rejections}")
     if args.max_faces < 100:
         raise UserError(f"--max-faces must be at least 100, got {args.max_faces}")
+    texture_size = getattr(args, "texture_size", 2048)
+    if texture_size not in {2**k for k in range(8, 14)}:
+        raise UserError(f"--texture-size must be a power of two from 256 to 8192, got {texture_size}")
     # fail before the long stages, not after them
     work_size = parse_work_size(getattr(args, "work_size", None))
     if args.step_deg is not None and not (math.isfinite(args.step_deg) and args.step_deg != 0):
@@ -89,7 +96,8 @@ def options_from_args(args) -> ReconstructOptions:
         overwrite=args.overwrite,
         spawn=args.spawn, export_colmap=args.export_colmap, export_nerfstudio=args.export_nerfstudio,
         copy_images=args.copy_images,
-        max_rejections=args.max_rejections, work_size=work_size)
+        max_rejections=args.max_rejections, work_size=work_size,
+        texture=not getattr(args, "no_texture", False), texture_size=texture_size)
 
 
 def print_summary(res, stream=None) -> None:

@@ -53,13 +53,16 @@ class PlacedImages:
         return f"photos for the exports in OUT/{self.folder}: {how}"
 
 
-def write_outputs(staging: Path, opts, seq, names, mesh, fused, progress) -> dict[str, Path]:
-    """Write the model, cameras and exports into ``staging`` (the folder that becomes OUT's new set)."""
+def write_outputs(staging: Path, opts, seq, names, mesh, fused, progress, textured=None) -> dict[str, Path]:
+    """Write the model, cameras and exports into ``staging`` (the folder that becomes OUT's new set).
+
+    ``textured`` (a :class:`recon.texture.TexturedMesh` of ``mesh``): the GLB and OBJ carry its texture
+    (``model.mtl``, ``model_albedo.png``); the PLY keeps ``mesh``'s vertex colours."""
     from recon.export import export_mesh
 
     out = staging
     with progress.stage("export"):
-        files = dict(export_mesh(mesh, out))
+        files = dict(export_mesh(mesh, out, textured=textured))
         write_cameras(out / "cameras.json", seq)
         files["cameras"] = out / "cameras.json"
         if fused is not None and len(fused.pts_table):

@@ -18,7 +18,7 @@ class ReconstructOptions:
     cameras: Path | None = None
     intrinsics: Path | None = None
     resolution: int = 256
-    max_faces: int = 100_000
+    max_faces: int = 50_000  # a standalone headset's budget for one object
     every: int = 1
     frames: int | None = None  # use this many frames spread evenly over the input (instead of ``every``)
     fusion: bool = True
@@ -29,6 +29,8 @@ class ReconstructOptions:
     copy_images: bool = False  # the exports' photos under OUT/images: copies, not hard links
     max_rejections: int | None = None  # None: 0 with masks_dir (trusted), 1 with automatic silhouettes
     work_size: int | None = None  # long side of the work images, pixels; 0: full size; None: the default policy
+    texture: bool = True  # a UV atlas and a baked photo texture (False: vertex colours only)
+    texture_size: int = 2048  # texture side, texels
 
 
 MIN_VIEWS = 3
