@@ -55,15 +55,7 @@ SETTINGS_FILES = ("turntable.toml", "turntable.json")
 STATUSES = ("ok", "warning", "check_failed", "failed", "not_run")
 FINISHED = ("ok", "warning", "check_failed")  # the object's OUT holds this run's model
 
-#: Settings a ``turntable.toml`` may give, as the ``reconstruct`` options are called (``-`` or ``_``), and
-#: their types. Paths are relative to the object's folder.
-SETTINGS: dict[str, tuple[type, ...]] = {
-    "input": (str,), "masks": (str,), "cameras": (str,), "intrinsics": (str,),
-    "r_outer": (int, float), "r_inner": (int, float), "stroke": (int, float), "step_deg": (int, float),
-    "resolution": (int,), "max_faces": (int,), "every": (int,), "frames": (int,), "max_rejections": (int,),
-    "work_size": (int, str), "no_fusion": (bool,), "fusion": (bool,), "export_colmap": (bool,),
-    "export_nerfstudio": (bool,), "copy_images": (bool,),
-}
+#: Settings that name files: relative to the object's folder in its settings file
 PATH_SETTINGS = ("input", "masks", "cameras", "intrinsics")
 
 BATCH_DIR = ".batch"  # OUT/.batch: one record per finished object, the running markers
@@ -107,10 +99,13 @@ def find_objects(root: Path, out: Path | None = None) -> list[tuple[str, Path]]:
     return sorted(found, key=lambda t: natural_key(t[0]))
 
 
-def read_settings(path: Path) -> dict:
+def read_settings(path: Path, types: dict[str, tuple[type, ...]]) -> dict:
     """The object's own settings (``turntable.toml`` or ``turntable.json`` in its folder), keys with ``_``.
 
-    Raises ``UserError`` naming the file for a file that does not parse, an unknown key or a wrong type.
+    ``types``: the settings allowed (``reconstruct``'s option names, ``-`` or ``_``) and their types; a
+    ``no_X`` switch may also be given as ``X = false``. Paths (:data:`PATH_SETTINGS`) are made relative to
+    the object's folder, other strings and numbers are returned as given. Raises ``UserError`` naming the
+    file for a file that does not parse, an unknown key or a wrong type.
     """
     if not path.is_dir():
         return {}
@@ -132,16 +127,16 @@ def read_settings(path: Path) -> dict:
         settings = {}
         for key, value in raw.items():
             k = key.replace("-", "_")
-            if k not in SETTINGS:
-                raise UserError(f"{f}: unknown setting {key!r} (known: {', '.join(sorted(SETTINGS))})")
-            ok = SETTINGS[k]
+            if k not in types and types.get(f"no_{k}") == (bool,):  # fusion = false -> no_fusion = true
+                k, value = f"no_{k}", (not value) if isinstance(value, bool) else value
+            if k not in types:
+                raise UserError(f"{f}: unknown setting {key!r} (known: {', '.join(sorted(types))})")
+            ok = types[k]
             if not isinstance(value, ok) or (isinstance(value, bool) and bool not in ok):
                 raise UserError(f"{f}: {key} = {value!r}: expected {' or '.join(t.__name__ for t in ok)}")
-            settings[k] = str(path / value) if k in PATH_SETTINGS and not Path(value).is_absolute() else value
-        if "fusion" in settings:
-            settings["no_fusion"] = not settings.pop("fusion")
-        if "work_size" in settings:
-            settings["work_size"] = str(settings["work_size"])
+            if k in PATH_SETTINGS and not Path(value).is_absolute():
+                value = str(path / value)
+            settings[k] = str(value) if str in ok else value
         return settings
     return {}
 
@@ -392,21 +387,21 @@ def run_batch(jobs: list[Job], out: Path, *, address: str | None = None, cpus_pe
             done(job, prev, record=False)
         else:
             todo.append(job)
-    interrupted = False
     if todo:
-        interrupted = _run_ray(todo, out, address, cpus_per_job, retries, done, rows)
+        _run_ray(todo, out, address, cpus_per_job, retries, done, rows)
     ordered = [rows[j.name] for j in jobs]
     for r in ordered:
         r.setdefault("resumed", False)
-    res = BatchResult(rows=ordered, wall_s=time.perf_counter() - t0, interrupted=interrupted)
+    res = BatchResult(rows=ordered, wall_s=time.perf_counter() - t0)
     res.files = write_reports(out, res)
     return res
 
 
-def _run_ray(todo: list[Job], out: Path, address: str | None, cpus: int, retries: int, done, rows) -> bool:
+def _run_ray(todo: list[Job], out: Path, address: str | None, cpus: int, retries: int, done, rows) -> None:
     import ray
 
     started = _connect(address)
+    interrupted = False
     pending: list = []
     by_ref: dict = {}
     try:
@@ -434,22 +429,25 @@ def _run_ray(todo: list[Job], out: Path, address: str | None, cpus: int, retries
                 row["attempts"] = attempts
                 row["node"] = row["node"] or node
                 done(job, row)
-        return False
     except BaseException:  # Ctrl-C, SIGTERM: stop every job, report what finished, then let it end the run
-        for ref in pending:
-            ray.cancel(ref, force=True)
-        for ref in pending:
-            job = by_ref[ref]
-            _attempts(out, job.name)
-            rows[job.name] = _row(job, out, None, "not_run", "interrupted (a re-run with --resume continues)")
-        for job in todo:
-            rows.setdefault(job.name, _row(job, out, None, "not_run", "interrupted before it was started"))
-        ordered = [rows[j] for j in rows]
-        write_reports(out, BatchResult(rows=ordered, wall_s=0.0, interrupted=True))
+        interrupted = True
+        # A Ray this call started stops its jobs' workers at shutdown (below), and a cluster kills the tasks
+        # of a driver that leaves; ray.cancel(force=True) is left to a caller's own Ray: racing a finishing
+        # task's reply it can crash the driver (RAY_CHECK in TaskManager, seen with Ray 2.60)
+        if not started:
+            for ref in pending:
+                with contextlib.suppress(Exception):
+                    ray.cancel(ref, force=True)
         raise
     finally:
         if started:
             ray.shutdown()
+        if interrupted:  # after the shutdown: no job can start (and leave its marker) any more
+            for job in todo:
+                if job.name not in rows:
+                    _attempts(out, job.name)
+                    rows[job.name] = _row(job, out, None, "not_run", "interrupted (a re-run with --resume continues)")
+            write_reports(out, BatchResult(rows=list(rows.values()), wall_s=0.0, interrupted=True))
 
 
 def _ray_reason(exc, retries: int) -> str:

@@ -62,6 +62,27 @@ def _check(args) -> None:
     options_from_args(probe)
 
 
+def settings_types() -> dict[str, tuple[type, ...]]:
+    """What an object's ``turntable.toml`` may set: ``input`` and every reconstruct option ``batch`` takes (the
+    target, :func:`add_job_arguments`), by its argparse name, with the types its value may have."""
+    from ..batch import PATH_SETTINGS
+
+    p = argparse.ArgumentParser(add_help=False)
+    add_target_arguments(p, required=False)
+    add_job_arguments(p)
+    types: dict[str, tuple[type, ...]] = {"input": (str,)}
+    for a in p._actions:
+        if isinstance(a, argparse._StoreTrueAction):
+            types[a.dest] = (bool,)
+        elif a.type in (int, float):
+            types[a.dest] = (int,) if a.type is int else (int, float)
+        elif a.dest in PATH_SETTINGS:
+            types[a.dest] = (str,)
+        elif a.dest != "help":
+            types[a.dest] = (str, int)  # --work-size 1600 or 'full'
+    return types
+
+
 def job_namespace(args, name: str, path: Path, out: Path) -> argparse.Namespace:
     """The ``reconstruct`` arguments of one object: the command line, then its own settings on top."""
     from ..batch import object_input, read_settings
@@ -72,7 +93,7 @@ def job_namespace(args, name: str, path: Path, out: Path) -> argparse.Namespace:
         value = getattr(args, key)
         if value is not None and not Path(value).is_absolute() and path.is_dir():
             setattr(ns, key, str(path / value))
-    for key, value in read_settings(path).items():
+    for key, value in read_settings(path, settings_types()).items():
         setattr(ns, key, value)
     return ns
 
