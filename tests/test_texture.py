@@ -1,0 +1,290 @@
+"""The baked texture against synthetic ground truth, and the textured files as other tools read them.
+
+A 60 mm box standing on the table carries a known smooth albedo ``albedo(X)``; its views are
+ray-cast with known cameras (unlit: each pixel is the albedo where its ray meets the box), the texture
+is baked from them, and texels are compared with the albedo at their own surface points.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import struct
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+import trimesh
+
+from calib.camera import make_T
+from recon.export import export_mesh
+from recon.texture import (
+    TexturedMesh,
+    bake_texture,
+    render_albedo,
+    srgb_decode_lut,
+    srgb_encode,
+    texture_mesh,
+    texture_side,
+    uv_atlas,
+)
+from recon.types import TableMesh
+
+BOX_MM = 60.0
+SIZE = (320, 240)
+FOCAL_PX = 300.0
+ALBEDO_TOL_DN = 2.0  # median |texel - truth| over the seen sides, 8-bit sRGB codes (measured 0.34)
+ALBEDO_P90_TOL_DN = 4.0  # 90th percentile (edges of the box, sampling blur; measured 0.96)
+REPO = Path(__file__).resolve().parents[1]
+
+
+def albedo_srgb(X: np.ndarray) -> np.ndarray:
+    """The box's true albedo (N, 3) in [0, 1], sRGB, at table points ``X`` (N, 3) mm: smooth in every direction."""
+    r = 0.5 + 0.35 * np.sin(X[:, 0] / 9.0)
+    g = 0.5 + 0.35 * np.cos(X[:, 2] / 11.0)
+    b = 0.2 + 0.6 * X[:, 1] / BOX_MM
+    return np.clip(np.column_stack([r, g, b]), 0.0, 1.0)
+
+
+def _box() -> TableMesh:
+    tm = trimesh.creation.box(extents=[BOX_MM] * 3)
+    tm.apply_translation([0.0, BOX_MM / 2, 0.0])
+    for _ in range(3):
+        tm = tm.subdivide()
+    V = np.asarray(tm.vertices, np.float64)
+    colours = np.rint(albedo_srgb(V) * 255).astype(np.uint8)
+    return TableMesh(V, np.asarray(tm.faces, np.int64), np.asarray(tm.vertex_normals, np.float64), colours)
+
+
+def _look_at(azimuth_deg: float, elevation_deg: float, distance_mm: float = 260.0) -> np.ndarray:
+    e, a = np.radians(elevation_deg), np.radians(azimuth_deg)
+    L = np.array([0.0, BOX_MM / 2, 0.0])
+    C = L + distance_mm * np.array([np.cos(e) * np.cos(a), np.sin(e), np.cos(e) * np.sin(a)])
+    z = (L - C) / np.linalg.norm(L - C)
+    x = np.cross(z, [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    R = np.column_stack([x, np.cross(z, x), z]).T
+    return make_T(R, -R @ C)
+
+
+def _K() -> np.ndarray:
+    return np.array([[FOCAL_PX, 0, (SIZE[0] - 1) / 2], [0, FOCAL_PX, (SIZE[1] - 1) / 2], [0, 0, 1.0]])
+
+
+def _views(mesh: TableMesh, n: int, gains=None) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray]:
+    """Unlit ray-cast photos of the box (sRGB of the true albedo times each view's gain), masks, poses."""
+    from recon.raycast import raycasting_scene
+
+    Ts = np.stack([_look_at(360.0 * k / n + 7.0, 35.0 if k % 2 else 20.0) for k in range(n)])
+    scene = raycasting_scene(mesh.vertices_table, mesh.faces)
+    K = _K()
+    u, v = np.meshgrid(np.arange(SIZE[0], dtype=float), np.arange(SIZE[1], dtype=float))
+    d_cam = np.stack([(u - K[0, 2]) / FOCAL_PX, (v - K[1, 2]) / FOCAL_PX, np.ones_like(u)], -1)
+    images, masks = [], []
+    lut = srgb_decode_lut()
+    for k, T in enumerate(Ts):
+        R, t = T[:3, :3], T[:3, 3]
+        C = -R.T @ t
+        rays = np.concatenate([np.broadcast_to(C, d_cam.shape), d_cam @ R], -1).astype(np.float32)
+        t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        hit = np.isfinite(t_hit)
+        X = C + (d_cam @ R)[hit] * t_hit[hit][:, None]
+        lin = lut[np.rint(albedo_srgb(X) * 255).astype(np.uint8)] * (1.0 if gains is None else gains[k])
+        img = np.full((SIZE[1], SIZE[0], 3), 12, np.uint8)  # a dark background the bake must not pull in
+        img[hit] = srgb_encode(lin)
+        images.append(img)
+        masks.append(hit.astype(np.uint8) * 255)
+    return images, masks, Ts
+
+
+def _texel_errors(textured: TexturedMesh, rng: np.random.Generator, n: int = 4000) -> np.ndarray:
+    """|texture - truth| (n, 3) in 8-bit codes at random points of the box's sides and top (not the bottom)."""
+    m = textured.mesh
+    V, F = m.vertices_table, m.faces
+    up = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])[:, 1]
+    faces = np.flatnonzero(up >= -1e-9)  # not the underside (no view sees it)
+    f = rng.choice(faces, n)
+    b = rng.dirichlet([1.0, 1.0, 1.0], n)
+    X = np.einsum("nk,nkd->nd", b, V[F[f]])
+    uv = np.einsum("nk,nkd->nd", b, textured.texcoords[F[f]].astype(np.float64))
+    S = textured.texture_rgb.shape[0]
+    col = np.clip(np.floor(uv[:, 0] * S).astype(int), 0, S - 1)
+    row = np.clip(np.floor(uv[:, 1] * S).astype(int), 0, S - 1)
+    texel = textured.texture_rgb[row, col].astype(np.float64)
+    return np.abs(texel - albedo_srgb(X) * 255.0)
+
+
+@pytest.fixture(scope="module")
+def box_views():
+    mesh = _box()
+    return mesh, *_views(mesh, 10)
+
+
+@pytest.fixture(scope="module")
+def baked(box_views):
+    mesh, images, masks, Ts = box_views
+    return texture_mesh(mesh, images, _K(), Ts, masks=masks, size=512)
+
+
+def test_atlas_keeps_faces_and_splits_only_at_seams(box_views):
+    mesh = box_views[0]
+    src, faces, uv = uv_atlas(mesh.vertices_table, mesh.faces, 512)
+    assert faces.shape == mesh.faces.shape
+    np.testing.assert_array_equal(src[faces], mesh.faces)  # same triangles, same order
+    assert uv.min() >= 0.0 and uv.max() <= 1.0
+    assert len(mesh.vertices_table) <= len(src) < 1.5 * len(mesh.vertices_table)
+
+
+def test_baked_texels_match_the_true_albedo(baked):
+    err = _texel_errors(baked, np.random.default_rng(0))
+    assert np.median(err) < ALBEDO_TOL_DN, np.median(err)
+    assert np.percentile(err, 90) < ALBEDO_P90_TOL_DN, np.percentile(err, 90)
+
+
+def test_exposure_differences_between_views_are_balanced(box_views):
+    mesh, _, _, _ = box_views
+    gains = np.array([0.75, 1.0 / 0.75] * 5)  # geometric mean 1: the true albedo's level (unbalanced: median 4.9 DN)
+    images, masks, Ts = _views(mesh, 10, gains)
+    textured = texture_mesh(mesh, images, _K(), Ts, masks=masks, size=512)
+    err = _texel_errors(textured, np.random.default_rng(1))
+    assert np.median(err) < ALBEDO_TOL_DN, np.median(err)
+
+
+def test_no_background_bleeds_into_the_charts_or_the_gutter(baked):
+    tex = baked.texture_rgb.astype(float)
+    assert tex.min() > 25  # the dark background (12) never reaches a texel; the gutter holds chart colours
+
+
+def test_render_of_the_baked_model_matches_a_view(box_views, baked):
+    mesh, images, masks, Ts = box_views
+    img, hit = render_albedo(baked.mesh, _K(), Ts[3], SIZE, texcoords=baked.texcoords,
+                             texture_rgb=baked.texture_rgb)
+    inner = hit & (masks[3] > 0)
+    diff = np.abs(img[inner].astype(float) - images[3][inner].astype(float))
+    assert np.median(diff) < ALBEDO_TOL_DN, np.median(diff)
+
+
+def test_bake_rejects_inconsistent_inputs(box_views):
+    mesh, images, masks, Ts = box_views
+    with pytest.raises(ValueError, match="texcoords"):
+        bake_texture(mesh, np.zeros((3, 2)), images, _K(), Ts)
+    with pytest.raises(ValueError, match="pose"):
+        bake_texture(mesh, np.zeros((len(mesh.vertices_table), 2)), images[:2], _K(), Ts)
+
+
+def test_texture_side_follows_the_photos_resolution(box_views):
+    mesh, _, _, Ts = box_views
+    small = texture_side(mesh.vertices_table, mesh.faces, _K(), Ts, 4096)
+    big = texture_side(mesh.vertices_table, mesh.faces, _K() * [[4], [4], [1]], Ts, 4096)
+    assert 256 <= small < big <= 4096 and big == 4 * small  # 4x the focal length: 4x the texture side
+    assert texture_side(mesh.vertices_table, mesh.faces, _K() * [[4], [4], [1]], Ts, 512) == 512
+
+
+# --------------------------------------------------------------------------- files
+
+
+def _glb_json(data: bytes) -> dict:
+    n, kind = struct.unpack("<I4s", data[12:20])
+    assert data[:4] == b"glTF" and kind == b"JSON"
+    return json.loads(data[20:20 + n])
+
+
+def test_glb_round_trip_keeps_uvs_and_texture(baked, tmp_path):
+    paths = export_mesh(baked.mesh, tmp_path, textured=baked)
+    doc = _glb_json(paths["glb"].read_bytes())
+    prim = doc["meshes"][0]["primitives"][0]
+    assert "TEXCOORD_0" in prim["attributes"] and "COLOR_0" not in prim["attributes"]
+    pbr = doc["materials"][0]["pbrMetallicRoughness"]
+    assert pbr["metallicFactor"] == 0 and pbr["roughnessFactor"] >= 0.9 and pbr["baseColorTexture"]["index"] == 0
+    assert doc["images"][0]["mimeType"] == "image/png"
+    loaded = trimesh.load(paths["glb"], force="mesh", process=False)
+    assert isinstance(loaded.visual, trimesh.visual.TextureVisuals)
+    np.testing.assert_allclose(loaded.vertices * 1000.0, baked.mesh.vertices_table, atol=1e-3)  # metres
+    uv = loaded.visual.uv.copy()
+    uv[:, 1] = 1.0 - uv[:, 1]  # trimesh keeps OBJ's v-up convention
+    np.testing.assert_allclose(uv, baked.texcoords, atol=1e-6)
+    img = np.asarray(loaded.visual.material.baseColorTexture.convert("RGB"))
+    np.testing.assert_array_equal(img, baked.texture_rgb)  # PNG: lossless
+    merged = trimesh.load(paths["glb"], force="mesh")
+    merged.merge_vertices(merge_tex=True, merge_norm=True)
+    assert merged.is_watertight  # the seams split vertices, not the surface
+
+
+def test_obj_mtl_png_load_with_the_texture(baked, tmp_path):
+    paths = export_mesh(baked.mesh, tmp_path, textured=baked)
+    assert {"obj", "mtl", "texture", "ply"} <= set(paths)
+    assert f"map_Kd {paths['texture'].name}" in paths["mtl"].read_text()
+    loaded = trimesh.load(paths["obj"], force="mesh", process=False)
+    assert isinstance(loaded.visual, trimesh.visual.TextureVisuals)
+    assert len(loaded.vertices) == len(baked.mesh.vertices_table)
+    img = np.asarray(loaded.visual.material.image.convert("RGB"))
+    np.testing.assert_array_equal(img, baked.texture_rgb)
+    # the same texel through OBJ's v-up coordinates
+    np.testing.assert_allclose(loaded.visual.uv[:, 1], 1.0 - baked.texcoords[:, 1], atol=1e-6)
+
+
+def _validator_env():
+    node = shutil.which("node")
+    if node is None:
+        return None
+    probe = subprocess.run([node, "-e", "require.resolve('gltf-validator')"], capture_output=True, cwd=REPO)
+    return node if probe.returncode == 0 else None
+
+
+def test_textured_glb_passes_the_khronos_validator(baked, tmp_path):
+    node = _validator_env()
+    if node is None:
+        pytest.skip("node or the npm package gltf-validator not found (NODE_PATH)")
+    paths = export_mesh(baked.mesh, tmp_path, textured=baked)
+    res = subprocess.run([node, str(REPO / "benchmarks" / "gltf_validate.mjs"), str(paths["glb"])],
+                         capture_output=True, text=True, timeout=120)
+    report = json.loads(res.stdout.splitlines()[-1])
+    assert res.returncode == 0 and report["errors"] == 0 and report["warnings"] == 0, report
+
+
+# --------------------------------------------------------------------------- the command
+
+
+@pytest.fixture(scope="module")
+def small_scene(tmp_path_factory):
+    from turntable.synth import SynthOptions, make_sequence
+
+    root = tmp_path_factory.mktemp("texscene") / "seq"
+    make_sequence(root, SynthOptions(object="vase", frames=6, step_deg=60.0, width=320, height=240, focal_px=380.0,
+                                     elevation_deg=35.0, distance_mm=430.0, jpeg=95, seed=4))
+    return root
+
+
+def _reconstruct(scene: Path, out: Path, *extra: str) -> int:
+    from turntable.cli import main
+
+    return main(["reconstruct", str(scene / "images"), "--cameras", str(scene / "cameras_gt.json"), "--masks",
+                 str(scene / "masks"), "--resolution", "32", "--no-fusion", "--quiet", "--out", str(out), *extra])
+
+
+def test_reconstruct_writes_the_textured_model(small_scene, tmp_path):
+    out = tmp_path / "scan"
+    assert _reconstruct(small_scene, out, "--texture-size", "512") == 0
+    for name in ("model.glb", "model.obj", "model.mtl", "model_albedo.png", "model.ply"):
+        assert (out / name).is_file(), name
+    doc = _glb_json((out / "model.glb").read_bytes())
+    assert "baseColorTexture" in doc["materials"][0]["pbrMetallicRoughness"]
+    assert "COLOR_0" not in doc["meshes"][0]["primitives"][0]["attributes"]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["files"]["texture"].endswith("model_albedo.png")
+
+
+def test_no_texture_keeps_the_vertex_coloured_model(small_scene, tmp_path):
+    out = tmp_path / "scan"
+    assert _reconstruct(small_scene, out, "--no-texture") == 0
+    assert not (out / "model_albedo.png").exists() and not (out / "model.mtl").exists()
+    doc = _glb_json((out / "model.glb").read_bytes())
+    assert "COLOR_0" in doc["meshes"][0]["primitives"][0]["attributes"]
+    assert "images" not in doc and "baseColorTexture" not in doc["materials"][0]["pbrMetallicRoughness"]
+
+
+def test_texture_size_must_be_a_power_of_two(small_scene, tmp_path, capsys):
+    assert _reconstruct(small_scene, tmp_path / "scan", "--texture-size", "1000") == 2
+    assert "--texture-size" in capsys.readouterr().err
