@@ -632,3 +632,75 @@ def export_nerfstudio(
     path = out / "transforms.json"
     atomic_write_bytes(path, (json.dumps(doc, indent=2) + "\n").encode())
     return path
+
+
+# --- USDZ ------------------------------------------------------------------------------------------
+
+
+def usd_available() -> bool:
+    """Whether ``usd-core`` (``pxr``) is installed: the optional extra ``turntable[usd]``."""
+    try:
+        import pxr  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def export_usdz(textured: TexturedMesh, path: str | os.PathLike) -> Path:
+    """Write a USDZ (AR Quick Look, Apple Vision Pro) of a textured mesh: metres, +Y up, UsdPreviewSurface.
+
+    The package holds one ``.usdc`` layer (``metersPerUnit`` 1, ``upAxis`` Y; the mesh counter-clockwise
+    seen from outside, USD's right-handed default) with ``primvars:st`` (USD's t runs up: ``1 - v``), a
+    matte, non-metallic ``UsdPreviewSurface`` whose ``diffuseColor`` reads the sRGB PNG texture, and the
+    texture itself. Needs ``usd-core`` (:func:`usd_available`).
+    """
+    import tempfile
+
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, UsdUtils, Vt
+
+    V, F, N, _ = _mesh_arrays(textured.mesh)
+    uv = np.asarray(textured.texcoords, np.float64)
+    with tempfile.TemporaryDirectory(prefix="usdz") as tmp:
+        layer, tex = Path(tmp) / "model.usdc", Path(tmp) / "model_albedo.png"
+        tex.write_bytes(png_bytes(textured.texture_rgb))
+        stage = Usd.Stage.CreateNew(str(layer))
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+        UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+        root = UsdGeom.Xform.Define(stage, "/model")
+        stage.SetDefaultPrim(root.GetPrim())
+        mesh = UsdGeom.Mesh.Define(stage, "/model/scan")
+        pts = V / MM_PER_M
+        mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts.astype(np.float32)))
+        mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*pts.min(axis=0).tolist()), Gf.Vec3f(*pts.max(axis=0).tolist())]))
+        mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(F), 3, np.int32)))
+        mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(F.astype(np.int32).ravel()))
+        mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(N.astype(np.float32)))
+        mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
+                                                     UsdGeom.Tokens.vertex)
+        st.Set(Vt.Vec2fArray.FromNumpy(np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]).astype(np.float32)))
+        material = UsdShade.Material.Define(stage, "/model/scan_material")
+        surface = UsdShade.Shader.Define(stage, "/model/scan_material/surface")
+        surface.CreateIdAttr("UsdPreviewSurface")
+        surface.CreateInput("metallic", Sdf.ValueTypeNames.Float).Set(0.0)
+        surface.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.9)
+        reader = UsdShade.Shader.Define(stage, "/model/scan_material/st_reader")
+        reader.CreateIdAttr("UsdPrimvarReader_float2")
+        reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
+        image = UsdShade.Shader.Define(stage, "/model/scan_material/albedo")
+        image.CreateIdAttr("UsdUVTexture")
+        image.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(tex.name)
+        image.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("sRGB")
+        image.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
+        image.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+        surface.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(image.ConnectableAPI(), "rgb")
+        material.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
+        UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+        stage.GetRootLayer().Save()
+        packed = Path(tmp) / "model.usdz"
+        if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(layer)), str(packed)):
+            raise ValueError("usd-core could not package the USDZ")
+        out = Path(path)
+        atomic_write_bytes(out, packed.read_bytes())
+    return out

@@ -274,6 +274,9 @@ def test_reconstruct_writes_the_textured_model(small_scene, tmp_path):
     assert "COLOR_0" not in doc["meshes"][0]["primitives"][0]["attributes"]
     summary = json.loads((out / "summary.json").read_text())
     assert summary["files"]["texture"].endswith("model_albedo.png")
+    from recon.export import usd_available
+
+    assert (out / "model.usdz").is_file() == usd_available()  # with the extra turntable[usd] only
 
 
 def test_no_texture_keeps_the_vertex_coloured_model(small_scene, tmp_path):
@@ -288,3 +291,25 @@ def test_no_texture_keeps_the_vertex_coloured_model(small_scene, tmp_path):
 def test_texture_size_must_be_a_power_of_two(small_scene, tmp_path, capsys):
     assert _reconstruct(small_scene, tmp_path / "scan", "--texture-size", "1000") == 2
     assert "--texture-size" in capsys.readouterr().err
+
+
+def test_usdz_is_metres_y_up_textured_and_valid(baked, tmp_path):
+    pytest.importorskip("pxr", reason="usd-core not installed (pip install '.[usd]')")
+    from pxr import Usd, UsdGeom, UsdShade, UsdValidation
+
+    from recon.export import export_usdz
+
+    path = export_usdz(baked, tmp_path / "model.usdz")
+    stage = Usd.Stage.Open(str(path))
+    assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.y and UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/model/scan"))
+    pts = np.asarray(mesh.GetPointsAttr().Get())
+    np.testing.assert_allclose(pts * 1000.0, baked.mesh.vertices_table, atol=1e-3)
+    st = np.asarray(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st").Get())
+    np.testing.assert_allclose(st[:, 1], 1.0 - baked.texcoords[:, 1], atol=1e-6)  # USD's t runs up
+    material, _ = UsdShade.MaterialBindingAPI(mesh.GetPrim()).ComputeBoundMaterial()
+    assert material and "model_albedo.png" in str(
+        stage.GetPrimAtPath("/model/scan_material/albedo").GetAttribute("inputs:file").Get())
+    validators = UsdValidation.ValidationRegistry().GetOrLoadAllValidators()  # usdchecker's rules, usdz included
+    errors = UsdValidation.ValidationContext(validators).Validate(stage)
+    assert not errors, [e.GetMessage() for e in errors]

@@ -63,6 +63,10 @@ def write_outputs(staging: Path, opts, seq, names, mesh, fused, progress, textur
     out = staging
     with progress.stage("export"):
         files = dict(export_mesh(mesh, out, textured=textured))
+        from recon.export import export_usdz, usd_available
+
+        if textured is not None and usd_available():  # the optional extra turntable[usd]
+            files["usdz"] = export_usdz(textured, out / "model.usdz")
         write_cameras(out / "cameras.json", seq)
         files["cameras"] = out / "cameras.json"
         if fused is not None and len(fused.pts_table):
