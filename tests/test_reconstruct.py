@@ -84,8 +84,10 @@ def test_glb_is_vr_ready_and_matches_the_object(run, scene):
     doc = _glb_json(out / "model.glb")
     pbr = doc["materials"][0]["pbrMetallicRoughness"]
     assert pbr["metallicFactor"] == 0
-    assert "COLOR_0" in doc["meshes"][0]["primitives"][0]["attributes"]
+    assert "TEXCOORD_0" in doc["meshes"][0]["primitives"][0]["attributes"]  # textured by default (issue 12)
+    assert pbr["baseColorTexture"]["index"] == 0
     mesh = trimesh.load(out / "model.glb", force="mesh", skip_materials=True)
+    mesh.merge_vertices(merge_tex=True, merge_norm=True)  # the texture seams split vertices, not the surface
     assert mesh.is_watertight
     lo, hi = mesh.bounds
     assert -0.002 < lo[1] < 0.005 and 0.05 < hi[1] < 0.2  # metres, +Y up, standing on the plane
@@ -95,8 +97,8 @@ def test_glb_is_vr_ready_and_matches_the_object(run, scene):
     gt_pts = gt.sample(5000, seed=0)
     diag = np.linalg.norm(gt.bounds[1] - gt.bounds[0])
     assert _chamfer(pts, gt_pts) < CHAMFER_REL_TOL * diag
-    colors = np.asarray(mesh.visual.vertex_colors)[:, :3]
-    assert colors.std() > 5  # textured object: colours vary
+    texture = np.asarray(trimesh.load(out / "model.glb", force="mesh").visual.material.baseColorTexture)
+    assert texture[..., :3].std() > 5  # textured object: colours vary
 
 
 def test_recording_has_every_frame_and_the_mesh(run):
@@ -106,7 +108,7 @@ def test_recording_has_every_frame_and_the_mesh(run):
     assert rows["/world/camera/image"]["EncodedImage:blob"] == 12
     assert rows["/world/camera/image/ellipses"]["LineStrips2D:strips"] == 12  # the detected rings
     assert rows["/world/camera/image/silhouette"]["LineStrips2D:strips"] == 12
-    assert rows["/world/mesh"]["Mesh3D:vertex_colors"] == 1
+    assert rows["/world/mesh"]["Mesh3D:vertex_texcoords"] == 1  # the textured mesh (issue 12)
     assert "/world/hull" in rows
 
 
