@@ -6,11 +6,13 @@
 ``silhouettes``   automatic or ``--masks``; a verdict per view (ok / conservative / rejected)
 ``hull``          visual-hull carving in a working volume (``volume``) grown until the object fits
 ``fusion``        per-view stereo and the fused surface, kept only where held-out views confirm it
-``export``        model files, ``summary.json`` and the recording, into the staging folder
+``export``        the model files and exports (COLMAP, nerfstudio), into the staging folder
+``summary``       the run's verdict (failed checks) and :class:`ReconstructSummary`: ``summary.json`` and the screen
 ================  ==============================================================
 
 :mod:`turntable.reconstruct` runs them in order inside one :class:`turntable.outdir.OutputFolder`;
-each caches its result in :class:`turntable.stages.cache.StageCache`. ``options`` holds
+the work stages cache their results in :class:`turntable.stages.cache.StageCache`; the
+Rerun recording is logged by :func:`turntable.recording.record_reconstruction`. ``options`` holds
 :class:`ReconstructOptions`, which every stage reads; ``calibration`` is also what
 ``turntable calibrate-sequence`` runs.
 """
