@@ -4,7 +4,8 @@ Each job is an 8-frame 320x240 sequence with its true cameras and masks, carved 
 32^3 without fusion (a few seconds). One batch run is shared by most tests; while
 it runs, the test kills the worker of one object with SIGKILL, and Ray's retry
 must still finish it. A second run with --resume redoes only what changed.
-The last test joins a two-node ``ray.cluster_utils.Cluster`` through --address.
+Then a two-node ``ray.cluster_utils.Cluster`` joined through --address, and a batch
+interrupted by SIGINT (a subprocess, as Ctrl-C reaches it).
 """
 
 from __future__ import annotations
@@ -27,8 +28,6 @@ from turntable.cli import main
 from turntable.cli.batch import settings_types
 from turntable.errors import UserError
 from turntable.synth import SynthOptions, make_sequence
-
-ray = pytest.importorskip("ray")
 
 JOB_FLAGS = ["--cameras", "cameras_gt.json", "--masks", "masks", "--resolution", "32", "--no-fusion", "--no-texture"]
 KILL_AFTER_S = 0.5  # into the job: past the worker's start, well before its end (a job takes seconds)
@@ -189,7 +188,7 @@ def test_jobs_spread_over_two_nodes(root, tmp_path):
         cluster.shutdown()
 
 
-def test_ctrl_c_stops_cleanly_and_resume_continues(root, tmp_path):
+def test_ctrl_c_stops_cleanly_and_keeps_what_finished(root, tmp_path):
     import subprocess
     import sys
 
