@@ -702,5 +702,26 @@ def export_usdz(textured: TexturedMesh, path: str | os.PathLike) -> Path:
         if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(layer)), str(packed)):
             raise ValueError("usd-core could not package the USDZ")
         out = Path(path)
-        atomic_write_bytes(out, packed.read_bytes())
+        atomic_write_bytes(out, _zip_times_fixed(packed.read_bytes()))
     return out
+
+
+def _zip_times_fixed(data: bytes) -> bytes:
+    """A zip (USDZ) with every entry's DOS time stamp set to 1980-01-01 00:00: the same model, the same bytes."""
+    import io
+    import zipfile
+
+    buf = bytearray(data)
+    with zipfile.ZipFile(io.BytesIO(data)) as z:
+        infos = z.infolist()
+        start = z.start_dir  # the central directory's offset (CPython keeps it on the ZipFile)
+    fixed = struct.pack("<HH", 0, (0 << 9) | (1 << 5) | 1)  # time 00:00:00, date 1980-01-01
+    for info in infos:
+        if buf[info.header_offset:info.header_offset + 4] == b"PK\x03\x04":
+            buf[info.header_offset + 10:info.header_offset + 14] = fixed
+    pos = start
+    while buf[pos:pos + 4] == b"PK\x01\x02":
+        buf[pos + 12:pos + 16] = fixed
+        n, m, k = struct.unpack("<HHH", buf[pos + 28:pos + 34])
+        pos += 46 + n + m + k
+    return bytes(buf)
