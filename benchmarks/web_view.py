@@ -162,8 +162,11 @@ def free_port() -> int:
 
 def start_view(out: Path, port: int, timeout: float = 60.0) -> tuple[subprocess.Popen, str]:
     """``turntable view OUT --web --port PORT``: the process and the URL it printed."""
+    # its own process group, like a command in a terminal: Ctrl-C (stop_view) and a kill reach the Rerun server
+    # too, which otherwise could outlive it holding our pipes open
     proc = subprocess.Popen([PY, "-m", "turntable", "view", str(out), "--web", "--port", str(port)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                            start_new_session=True)
     deadline = time.monotonic() + timeout
     assert proc.stdout is not None
     for line in proc.stdout:  # the URL is printed before the server is waited on
@@ -175,7 +178,7 @@ def start_view(out: Path, port: int, timeout: float = 60.0) -> tuple[subprocess.
     else:
         url = ""
     if not url:
-        proc.kill()
+        _kill_group(proc)
         raise RuntimeError(f"turntable view --web printed no URL (exit {proc.wait()}): {proc.stderr.read()[-500:]}")
     while time.monotonic() < deadline:  # the page is up when its port answers
         try:
@@ -183,18 +186,28 @@ def start_view(out: Path, port: int, timeout: float = 60.0) -> tuple[subprocess.
                 return proc, url
         except OSError:
             time.sleep(0.2)
-    proc.kill()
+    _kill_group(proc)
     raise RuntimeError(f"nothing listens on 127.0.0.1:{port} after {timeout:.0f} s")
 
 
+def _kill_group(proc: subprocess.Popen) -> None:
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+
+
 def stop_view(proc: subprocess.Popen) -> tuple[int, str]:
-    """Ctrl-C, as a person stops it: (exit code, what it wrote on stderr)."""
-    proc.send_signal(signal.SIGINT)
+    """Ctrl-C, as a terminal sends it to the command's process group: (exit code, what it wrote on stderr)."""
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGINT)
     try:
         _, err = proc.communicate(timeout=30)
     except subprocess.TimeoutExpired:
-        proc.kill()
-        _, err = proc.communicate()
+        _kill_group(proc)
+        try:
+            _, err = proc.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            err = "(no answer to SIGKILL)"
     return proc.returncode, err
 
 
