@@ -20,6 +20,8 @@ from turntable.cli.view import no_display_reason, web_command, web_url
 from turntable.recording import (
     HIDDEN_BY_DEFAULT,
     SCALARS,
+    RecordedModels,
+    RecordedViews,
     Recorder,
     camera_entity,
     eye_for,
@@ -88,7 +90,8 @@ def _record_small_scan(path: Path, n: int = 6, rms=None) -> SimpleNamespace:
     images = [rng.integers(0, 255, (H, W, 3), dtype=np.uint8) for _ in range(n)]
     masks = [np.pad(np.ones((80, 60), bool), ((80, 80), (130, 130))) for _ in range(n)]
     rec = Recorder()
-    record_reconstruction(rec, opts, seq, names, images, masks, K, Ts, hull, fused, mesh, {}, ws)
+    record_reconstruction(rec, opts.spec, seq, RecordedViews(names, images, masks, K, Ts, {}, ws),
+                          RecordedModels(hull, fused, mesh))
     rec.save(path)
     return SimpleNamespace(Ts=Ts, V=V, n=n, rms=rms, W=W, H=H)
 

@@ -35,7 +35,7 @@ from .errors import UserError
 from .frames import Frame
 from .outdir import DISK_FULL_ERRNOS, OutputFolder, write_error
 from .progress import Progress
-from .recording import record_reconstruction
+from .recording import RecordedModels, RecordedViews, record_reconstruction
 from .stages import cameras, export, silhouettes
 from .stages import frames as frames_stage
 from .stages import hull as hull_stage
@@ -192,8 +192,9 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
     files = export.write_outputs(staging, opts, seq, names, mesh, fused, progress, textured=textured)
     if recorder is not None:
         with progress.stage("recording"):
-            record_reconstruction(recorder, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh,
-                                  conics, ws, textured=textured)
+            record_reconstruction(recorder, opts.spec, seq,
+                                  RecordedViews(names, images_rgb, masks, K, Ts, conics, ws),
+                                  RecordedModels(hull_mesh, fused, mesh, textured))
             files["recording"] = recorder.save(staging / "recording.rrd")
     files = {k: out / p.relative_to(staging) for k, p in files.items()}  # where they will be once published
     files["summary"] = out / "summary.json"

@@ -31,7 +31,9 @@ ours fails at once with "no space left".
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -264,12 +266,40 @@ def eye_for(vertices_table, Ts) -> tuple[np.ndarray, np.ndarray]:
     return target + EYE_DISTANCE * dist * direction, target
 
 
-def record_reconstruction(rec: Recorder, opts, seq, names, images_rgb, masks, K, Ts, hull_mesh, fused, mesh, conics,
-                          ws, textured=None) -> None:
+@dataclass(frozen=True)
+class RecordedViews:
+    """The views a run used, as the recording shows them: names, work images (V, H, W, 3) and masks,
+    the work-size camera ``K``, poses ``T_cam_table`` (V, 4, 4), ring conics per name (full-size pixels,
+    mapped by ``work_size``) and the :class:`turntable.worksize.WorkSize`."""
+
+    names: list[str]
+    images_rgb: list[np.ndarray]
+    masks: np.ndarray
+    K: np.ndarray
+    T_cam_table: np.ndarray
+    conics: dict
+    work_size: Any
+
+
+@dataclass(frozen=True)
+class RecordedModels:
+    """What a run made: the hull's mesh, the fused points (or None), the final mesh and its texture (or None)."""
+
+    hull_mesh: Any
+    fused: Any
+    mesh: Any
+    textured: Any = None
+
+
+def record_reconstruction(rec: Recorder, spec, seq, views: RecordedViews, models: RecordedModels) -> None:
     """The recording shows the work images with their camera ``K`` and the rings mapped onto them; the final
-    mesh with its texture when ``textured`` (a :class:`recon.texture.TexturedMesh` of ``mesh``) is given."""
-    if opts.spec is not None:
-        rec.log_target(opts.spec.r_outer_mm, opts.spec.r_inner_mm)
+    mesh with its texture when ``models.textured`` (a :class:`recon.texture.TexturedMesh`) is given.
+    ``spec``: the printed target (its rings drawn), or None."""
+    names, images_rgb, masks, K, Ts, conics, ws = (views.names, views.images_rgb, views.masks, views.K,
+                                                   views.T_cam_table, views.conics, views.work_size)
+    hull_mesh, fused, mesh, textured = models.hull_mesh, models.fused, models.mesh, models.textured
+    if spec is not None:
+        rec.log_target(spec.r_outer_mm, spec.r_inner_mm)
     W, H = ws.work
     by_name = {fp.image: fp for fp in seq.frames}
     eye, target = eye_for(mesh.vertices_table, Ts)
