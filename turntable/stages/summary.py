@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -56,27 +56,18 @@ class ReconstructSummary:
     mesh: MeshSummary
     fusion: str
     warnings: list[str] = field(default_factory=list)
+    time_s: dict[str, float] = field(default_factory=dict)
+    files: dict[str, str] = field(default_factory=dict)
     working_volume: dict = field(default_factory=dict)
     silhouettes: dict = field(default_factory=dict)
     failed_checks: list[str] = field(default_factory=list)
     exif_focal: dict | None = None
     work_size: dict | None = None
-    time_s: dict[str, float] = field(default_factory=dict)
-    files: dict[str, str] = field(default_factory=dict)
 
     def to_json(self) -> dict:
-        """The content of ``summary.json`` (strict JSON: no NaN, paths as strings)."""
-        return {
-            "frames_used": self.frames_used, "frames_skipped": dict(self.frames_skipped),
-            "focal_px": self.focal_px, "focal_std_px": self.focal_std_px,
-            "principal_point_px": list(self.principal_point_px), "mode": self.mode, "rms_px": self.rms_px,
-            "mesh": {"vertices": self.mesh.vertices, "faces": self.mesh.faces, "watertight": self.mesh.watertight,
-                     "volume_cm3": self.mesh.volume_cm3, "extent_mm": list(self.mesh.extent_mm),
-                     "pieces": self.mesh.pieces},
-            "fusion": self.fusion, "warnings": list(self.warnings), "time_s": dict(self.time_s),
-            "files": dict(self.files), "working_volume": self.working_volume, "silhouettes": self.silhouettes,
-            "failed_checks": list(self.failed_checks), "exif_focal": self.exif_focal, "work_size": self.work_size,
-        }
+        """The content of ``summary.json``: every field but ``out``, in field order (strict JSON: no NaN,
+        paths as strings)."""
+        return {k: v for k, v in asdict(self).items() if k != "out"}
 
     @classmethod
     def from_json(cls, d: dict, out: str = "") -> ReconstructSummary:
