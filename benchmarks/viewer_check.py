@@ -1,0 +1,800 @@
+"""Open a reconstruction's GLB in a real renderer (three.js, headless Chromium) and its USDZ in usd-core; check both.
+
+GLB: ``benchmarks/viewer_check.html`` is served from 127.0.0.1 (with three.js and
+the model; every other host name is unresolvable in the browser) and loads
+``model.glb`` with three.js's GLTFLoader into a PBR scene as a web/VR viewer
+shows it: a white hemisphere light and a directional key light, sRGB output,
+no tone mapping (three.js's default; a filmic or Khronos-neutral curve shifts
+the hue of dark colours), 800x600, software WebGL (SwiftShader). The camera is framed from
+the model's bounds (a sphere of the box's half diagonal) and aimed the way an
+AR/VR viewer anchors an asset: at its origin (the table centre) horizontally,
+at the model's mid-height vertically; from the front (+Z) and three more
+azimuths, 15 degrees above the horizon. For every view the page draws the
+viewer's picture and three code passes of the same geometry (texture u, v and
+the height above the table, 16 bits each), so every pixel of the screenshot
+is known: on the object or not, which texel the viewer drew, how high up it is.
+The checks, computed from the screenshots:
+
+- ``loads``: the page loaded the GLB without a JavaScript error;
+- ``textured``: the material has a baseColorTexture whose image decodes (or
+  vertex colours, COLOR_0);
+- ``on table``: the model stands on the table plane at its origin, as the README
+  promises (world bounds: min Y within 3 % of the height of 0, max Y above it,
+  the bounds' horizontal centre within half the model's size of the origin);
+- ``in frame``: no object pixel on the border, 2-80 % of the picture covered;
+- ``lit``: the object is not dark (mean sRGB luminance >= 0.10) and lit as a
+  viewer lights it: the median of rendered / texture albedo (linear luminance)
+  is within 0.3-3;
+- ``shading varies``: the 90th / 10th percentile of that ratio >= 1.2 (light
+  depends on the surface's direction: not a flat, unlit fill);
+- ``colour``: the chromaticity of the object's mean linear colour in the
+  picture is within 0.02 of that of the texture's texels the viewer drew there,
+  plus at most 0.02 of white (the dielectric's specular reflection of the white
+  lights, which desaturates dark colours; fitted per view). This also rules out
+  flat grey, the magenta of a missing texture, a swapped red/blue or a wrong
+  colour space;
+- ``texture detail``: rendered and texture luminance correlate per pixel
+  (r >= 0.5) where the texels vary (std >= 0.03); a wrongly mapped texture
+  (flipped v, other UV set) does not;
+- ``upright``: the pixels at the table plane (height <= 5 % of the model's)
+  lie at the bottom of the silhouette (their mean row in its lowest quarter)
+  and the silhouette's top rows show the model's top (height >= 80 %): the
+  GLB's +Y is screen up and the object stands on its base.
+
+``--negatives`` also runs the checks on three deliberately broken copies of
+the GLB (turned upside down: 180 degrees about X; the texture removed; the
+texture black; the texture flipped on the surface, v -> 1 - v; moved three
+model sizes along +X) and reports whether each fails, as it must.
+
+USDZ (needs ``usd-core``, the optional extra ``turntable[usd]``): usdchecker
+(``usdchecker --arkit`` where the executable exists; usd-core 26.11's wheel
+ships neither it nor the legacy ComplianceChecker, so its validation framework
+-- every registered validator, usdchecker's rules incl. the usdz package
+rules -- is run instead, plus the ARKit profile's rules re-stated here: prim
+types, shader ids, file types in the package, a usdc root layer first, nothing
+outside the package), stage up axis Y, metres per unit 1, the mesh's material:
+a UsdPreviewSurface whose diffuseColor is fed by a UsdUVTexture reading an sRGB
+PNG inside the package through a UsdPrimvarReader_float2 of the mesh's ``st``,
+the same texture as the GLB's, and the mesh's bounds equal to the GLB's (1 mm).
+
+three.js: ``--three DIR`` (its package folder), else ``$TURNTABLE_THREE``, else
+``three`` under a ``$NODE_PATH`` folder, else
+``~/.cache/turntable-viewer/node_modules/three``; ``--install-three`` puts it
+there with npm. Chromium: ``/usr/bin/chromium`` (``--chromium``).
+
+    .venv/bin/python benchmarks/viewer_check.py OUT_DIR_OR_MODEL [--screenshots DIR] [--negatives]
+
+Prints a table (model, check, value, pass/fail); exit 0 when every check
+passes (and every negative fails), 1 when not, 2 on bad input, 3 when the
+renderer is missing (Chromium or three.js; the USDZ checks still run).
+``tests/test_viewer_check.py`` runs it on a small synthetic reconstruction.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import dataclasses
+import functools
+import http.server
+import importlib.util
+import json
+import os
+import shutil
+import struct
+import subprocess
+import sys
+import threading
+import time
+import zipfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+PAGE = HERE / "viewer_check.html"
+CHROMIUM = "/usr/bin/chromium"
+THREE_CACHE = Path.home() / ".cache" / "turntable-viewer"
+WINDOW = (800, 600)
+AZIMUTHS_DEG = (0, 90, 180, 270)
+PASSES = ("beauty", "u", "v", "y", "p")
+
+# thresholds (see the module docstring)
+MIN_COVERAGE, MAX_COVERAGE = 0.02, 0.80
+MIN_LUMINANCE = 0.10  # mean sRGB luminance of the object's pixels, [0, 1]
+LIGHT_RANGE = (0.3, 3.0)  # median rendered / albedo linear luminance
+MIN_SHADING_SPREAD = 1.2  # 90th / 10th percentile of that ratio
+MAX_CHROMA_DIFF = 0.02  # chromaticity (r, g, b) / (r + g + b) of the mean linear colours
+MAX_PHOTO_CHROMA_DIFF = 0.03  # the same against the photos' vertex colours (model.ply)
+MAX_SPECULAR = 0.02  # white added to the albedo by the dielectric's specular reflection, at most (albedo units)
+MIN_DETAIL_STD, MIN_DETAIL_R = 0.03, 0.5
+BASE_BAND, TOP_BAND = 0.05, 0.80  # fractions of the model's height
+BASE_LOW_QUARTER = 0.75  # the base pixels' mean row at or below this fraction of the silhouette's height
+ON_PLANE_TOL = 0.03  # |min Y| / height
+
+
+class CheckError(Exception):
+    """Bad input: a file that is not there or not a GLB/USDZ."""
+
+
+@dataclasses.dataclass
+class Row:
+    model: str
+    check: str
+    value: str
+    ok: bool | None  # None: not a pass/fail row (information)
+
+
+# ---------------------------------------------------------------- GLB files
+
+def read_glb(data: bytes, name: str = "model.glb") -> tuple[dict, bytes]:
+    """A binary glTF's JSON and its BIN chunk."""
+    if len(data) < 20 or data[:4] != b"glTF":
+        raise CheckError(f"{name}: not a binary glTF file (no 'glTF' magic)")
+    length = struct.unpack_from("<I", data, 8)[0]
+    off, gltf, binary = 12, None, b""
+    while off + 8 <= min(length, len(data)):
+        size, kind = struct.unpack_from("<II", data, off)
+        chunk = data[off + 8:off + 8 + size]
+        if kind == 0x4E4F534A:
+            gltf = json.loads(chunk)
+        elif kind == 0x004E4942:
+            binary = chunk
+        off += 8 + size
+    if gltf is None:
+        raise CheckError(f"{name}: no JSON chunk")
+    return gltf, binary
+
+
+def write_glb(gltf: dict, binary: bytes) -> bytes:
+    js = json.dumps(gltf, separators=(",", ":")).encode()
+    js += b" " * (-len(js) % 4)
+    binary += b"\0" * (-len(binary) % 4)
+    body = struct.pack("<II", len(js), 0x4E4F534A) + js + struct.pack("<II", len(binary), 0x004E4942) + binary
+    return b"glTF" + struct.pack("<II", 2, 12 + len(body)) + body
+
+
+def _buffer_view(gltf: dict, binary: bytes, index: int) -> bytes:
+    view = gltf["bufferViews"][index]
+    start = view.get("byteOffset", 0)
+    return binary[start:start + view["byteLength"]]
+
+
+def _accessor(gltf: dict, binary: bytes, index: int) -> np.ndarray:
+    acc = gltf["accessors"][index]
+    dtype = {5121: np.uint8, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}[acc["componentType"]]
+    width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}[acc["type"]]
+    view = gltf["bufferViews"][acc["bufferView"]]
+    raw = binary[view.get("byteOffset", 0) + acc.get("byteOffset", 0):]
+    a = np.frombuffer(raw, dtype, count=acc["count"] * width).reshape(-1, width).astype(np.float64)
+    if acc.get("normalized"):
+        a /= np.iinfo(dtype).max
+    return a
+
+
+@dataclasses.dataclass
+class Albedo:
+    """What the GLB says the object's colour is: a texture (sRGB RGB uint8) times a factor, or vertex colours."""
+
+    factor: np.ndarray  # (4,) linear baseColorFactor
+    texture: np.ndarray | None  # (H, W, 3) uint8 sRGB
+    vertex_mean: np.ndarray | None  # (3,) linear mean of COLOR_0
+    describe: str
+
+
+def glb_albedo(gltf: dict, binary: bytes) -> Albedo:
+    prim = gltf["meshes"][0]["primitives"][0]
+    material = gltf.get("materials", [{}])[prim["material"]] if "material" in prim else {}
+    pbr = material.get("pbrMetallicRoughness", {})
+    factor = np.asarray(pbr.get("baseColorFactor", [1, 1, 1, 1]), np.float64)
+    vertex_mean = None
+    if "COLOR_0" in prim["attributes"]:
+        vertex_mean = _accessor(gltf, binary, prim["attributes"]["COLOR_0"])[:, :3].mean(axis=0)
+    if "baseColorTexture" not in pbr:
+        what = "vertex colours (COLOR_0)" if vertex_mean is not None else "no baseColorTexture, no COLOR_0"
+        return Albedo(factor, None, vertex_mean, what)
+    image = gltf["images"][gltf["textures"][pbr["baseColorTexture"]["index"]]["source"]]
+    data = _buffer_view(gltf, binary, image["bufferView"]) if "bufferView" in image else b""
+    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) if data else None
+    if bgr is None:
+        return Albedo(factor, None, vertex_mean, "baseColorTexture whose image does not decode")
+    rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    return Albedo(factor, rgb, vertex_mean, f"{rgb.shape[1]}x{rgb.shape[0]} {image.get('mimeType', '?')}")
+
+
+def with_root(gltf: dict, **node: object) -> dict:
+    """A copy of the glTF whose scene hangs below one new node with these properties (rotation, translation)."""
+    g = copy.deepcopy(gltf)
+    scene = g["scenes"][g.get("scene", 0)]
+    g["nodes"].append({"name": "viewer_check_root", "children": scene["nodes"], **node})
+    scene["nodes"] = [len(g["nodes"]) - 1]
+    return g
+
+
+def negative_models(glb: bytes) -> dict[str, bytes]:
+    """Broken copies of a GLB that every check run must reject: upside down, untextured, out of frame."""
+    gltf, binary = read_glb(glb)
+    positions = _accessor(gltf, binary, gltf["meshes"][0]["primitives"][0]["attributes"]["POSITION"])
+    size = float(np.max(positions.max(axis=0) - positions.min(axis=0)))
+    untextured = copy.deepcopy(gltf)
+    for material in untextured.get("materials", []):
+        material.get("pbrMetallicRoughness", {}).pop("baseColorTexture", None)
+    models = {
+        "upside_down": write_glb(with_root(gltf, rotation=[1.0, 0.0, 0.0, 0.0]), binary),  # 180 degrees about X
+        "no_texture": write_glb(untextured, binary),
+        "out_of_frame": write_glb(with_root(gltf, translation=[3.0 * size, 0.0, 0.0]), binary),
+    }
+    albedo = glb_albedo(gltf, binary)
+    if albedo.texture is not None:  # every image replaced by a black PNG of its size
+        black, data = _appended(gltf, binary, cv2.imencode(".png", np.zeros_like(albedo.texture))[1].tobytes())
+        for image in black["images"]:
+            image.update(bufferView=len(black["bufferViews"]) - 1, mimeType="image/png")
+        models["black_texture"] = write_glb(black, data)
+    attributes = gltf["meshes"][0]["primitives"][0]["attributes"]
+    if "TEXCOORD_0" in attributes:  # the texture upside down on the surface: v -> 1 - v (the classic flipY bug)
+        uv = _accessor(gltf, binary, attributes["TEXCOORD_0"])
+        flipped, data = _appended(gltf, binary, np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]).astype("<f4").tobytes())
+        acc = flipped["accessors"][attributes["TEXCOORD_0"]]
+        acc.update(bufferView=len(flipped["bufferViews"]) - 1, byteOffset=0)
+        acc.pop("min", None), acc.pop("max", None)
+        models["flipped_v"] = write_glb(flipped, data)
+    return models
+
+
+def _appended(gltf: dict, binary: bytes, blob: bytes) -> tuple[dict, bytes]:
+    """A copy of the glTF with a new last bufferView holding ``blob``, appended to the BIN chunk."""
+    g = copy.deepcopy(gltf)
+    padded = binary + b"\0" * (-len(binary) % 4)
+    g["bufferViews"].append({"buffer": 0, "byteOffset": len(padded), "byteLength": len(blob)})
+    g["buffers"][0]["byteLength"] = len(padded) + len(blob)
+    return g, padded + blob
+
+
+# ---------------------------------------------------------------- the browser side
+
+def find_three(explicit: str | None = None) -> Path | None:
+    """three.js's package folder (with build/three.module.js), or None."""
+    candidates = [explicit, os.environ.get("TURNTABLE_THREE")]
+    candidates += [str(Path(p) / "three") for p in os.environ.get("NODE_PATH", "").split(os.pathsep) if p]
+    candidates.append(str(THREE_CACHE / "node_modules" / "three"))
+    for c in candidates:
+        if c and (Path(c) / "build" / "three.module.js").is_file() and \
+                (Path(c) / "examples" / "jsm" / "loaders" / "GLTFLoader.js").is_file():
+            return Path(c)
+    return None
+
+
+def install_three() -> Path | None:
+    THREE_CACHE.mkdir(parents=True, exist_ok=True)
+    subprocess.run(["npm", "install", "--no-audit", "--no-fund", "--prefix", str(THREE_CACHE), "three"], check=True)
+    return find_three()
+
+
+def _web_view():
+    spec = importlib.util.spec_from_file_location("web_view", HERE / "web_view.py")
+    module = importlib.util.module_from_spec(spec)
+    assert spec.loader is not None
+    spec.loader.exec_module(module)
+    return module
+
+
+class _Handler(http.server.SimpleHTTPRequestHandler):
+    """The page, three.js (read-only, under /three/) and the models (/models/NAME.glb); nothing else."""
+
+    def __init__(self, *args, three: Path, models: dict[str, bytes], **kw):
+        self.three, self.models = three, models
+        super().__init__(*args, directory=str(three), **kw)
+
+    def log_message(self, *args) -> None:
+        pass
+
+    def do_GET(self) -> None:
+        path = self.path.split("?", 1)[0]
+        if path in ("/", "/index.html"):
+            self._send(PAGE.read_bytes(), "text/html")
+        elif path.startswith("/models/") and path.endswith(".glb") and path[8:-4] in self.models:
+            self._send(self.models[path[8:-4]], "model/gltf-binary")
+        elif path.startswith("/three/") and ".." not in path:
+            self.path = path[len("/three"):]
+            super().do_GET()
+        else:
+            self.send_error(404)
+
+    def _send(self, body: bytes, kind: str) -> None:
+        self.send_response(200)
+        self.send_header("Content-Type", kind)
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+
+class Server:
+    """An HTTP server on 127.0.0.1 only, in a thread."""
+
+    def __init__(self, three: Path, models: dict[str, bytes]):
+        handler = functools.partial(_Handler, three=three, models=models)
+        self.httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/"
+        self.thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
+        self.thread.start()
+
+    def close(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()
+
+
+def _evaluate(browser, expression: str, timeout: float = 60.0):
+    reply = browser.send("Runtime.evaluate", session=True, expression=expression, awaitPromise=True,
+                         returnByValue=True, timeout=int(timeout * 1000))
+    if "exceptionDetails" in reply:
+        raise RuntimeError(f"{expression}: {reply['exceptionDetails'].get('text')}")
+    return reply["result"].get("value")
+
+
+@dataclasses.dataclass
+class Views:
+    """What the viewer drew: per azimuth the picture (RGB uint8) and the decoded code passes."""
+
+    info: dict
+    errors: list[str]
+    beauty: dict[int, np.ndarray]
+    mask: dict[int, np.ndarray]  # bool (H, W): object pixel in every code pass
+    u: dict[int, np.ndarray]
+    v: dict[int, np.ndarray]
+    height: dict[int, np.ndarray]  # [0, 1] of the model's world bounds
+    local: dict[int, np.ndarray]  # (H, W, 3) the mesh's own coordinates (metres; 8 bits of its bounds per axis)
+
+
+def render(browser, url: str, name: str, azimuths: tuple[int, ...] = AZIMUTHS_DEG, timeout: float = 120.0) -> Views:
+    browser.send("Page.navigate", session=True, url=f"{url}?model={name}")
+    t0 = time.monotonic()
+    state = "loading"
+    while time.monotonic() - t0 < timeout:
+        time.sleep(0.3)
+        try:
+            state = _evaluate(browser, "window.viewerState") or "loading"
+        except RuntimeError:
+            continue
+        if state != "loading":
+            break
+    errors = _evaluate(browser, "window.viewerErrors || []") or []
+    if state != "ready":
+        return Views({"state": state}, errors + [state], {}, {}, {}, {}, {}, {})
+    info = _evaluate(browser, "window.viewerInfo")
+    views = Views(info, errors, {}, {}, {}, {}, {}, {})
+    lo, hi = np.asarray(info["localMin"]), np.asarray(info["localMax"])
+    for az in azimuths:
+        codes = {}
+        for p in PASSES:
+            _evaluate(browser, f"window.show({az}, '{p}')")
+            rgb = cv2.cvtColor(browser.screenshot(), cv2.COLOR_BGR2RGB)
+            if p == "beauty":
+                views.beauty[az] = rgb
+            else:
+                codes[p] = rgb
+        views.mask[az] = np.all([codes[p][..., 2] > 127 for p in ("u", "v", "y")], axis=0)
+        decode = {p: (codes[p][..., 0].astype(np.float64) * 256 + codes[p][..., 1]) / 65535.0 for p in "uvy"}
+        views.u[az], views.v[az], views.height[az] = decode["u"], decode["v"], decode["y"]
+        views.local[az] = lo + codes["p"] / 255.0 * (hi - lo)
+    return views
+
+
+@functools.lru_cache(maxsize=1)
+def _web_view_mod():
+    return _web_view()
+
+
+# ---------------------------------------------------------------- the checks
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    x = np.asarray(x, np.float64)
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+
+LUMA = np.array([0.2126, 0.7152, 0.0722])
+
+
+def expected_albedo(albedo: Albedo, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Linear RGB albedo the GLB asks for at each pixel (texels sampled bilinearly at the drawn UVs)."""
+    if albedo.texture is not None:
+        h, w = albedo.texture.shape[:2]
+        texel = cv2.remap(albedo.texture, (u * w - 0.5).astype(np.float32), (v * h - 0.5).astype(np.float32),
+                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return srgb_to_linear(texel / 255.0) * albedo.factor[:3]
+    base = albedo.vertex_mean if albedo.vertex_mean is not None else np.ones(3)
+    return np.broadcast_to(base * albedo.factor[:3], u.shape + (3,)).copy()
+
+
+def _chroma(rgb: np.ndarray) -> np.ndarray:
+    return rgb / max(float(np.sum(rgb)), 1e-9)
+
+
+def _chroma_fit(shot: np.ndarray, want: np.ndarray) -> tuple[float, float]:
+    """(chromaticity difference, white added) of mean linear colours: drawn ~ light x (albedo + white).
+
+    The dielectric's F0 of 4 % reflects the white lights, which desaturates dark colours; up to
+    MAX_SPECULAR of white (albedo units) is allowed and the best fit kept.
+    """
+    fits = [(float(np.abs(_chroma(shot) - _chroma(want + s)).max()), float(s))
+            for s in np.linspace(0.0, MAX_SPECULAR, 21)]
+    return min(fits)
+
+
+@dataclasses.dataclass
+class Reference:
+    """Colours from the photos, independent of the texture: the vertex colours of the pipeline's model.ply."""
+
+    path: Path
+    vertices: np.ndarray  # (N, 3) metres, the GLB's frame
+    colours: np.ndarray  # (N, 3) linear RGB
+
+    @functools.cached_property
+    def tree(self):
+        from scipy.spatial import cKDTree
+
+        return cKDTree(self.vertices)
+
+
+def photo_reference(glb: Path) -> Reference | None:
+    """model.ply next to the GLB, if it has vertex colours (the pipeline writes them from the photos)."""
+    ply = glb.with_suffix(".ply")
+    if not ply.is_file():
+        return None
+    import trimesh
+
+    mesh = trimesh.load(ply, process=False)
+    colours = getattr(mesh.visual, "vertex_colors", None) if getattr(mesh.visual, "kind", None) == "vertex" else None
+    if colours is None or len(colours) != len(mesh.vertices):
+        return None
+    return Reference(ply, np.asarray(mesh.vertices, np.float64), srgb_to_linear(colours[:, :3] / 255.0))
+
+
+def view_measures(views: Views, albedo: Albedo, az: int, reference: Reference | None = None) -> dict:
+    """The figures the checks compare, for one azimuth."""
+    mask = views.mask[az]
+    h, w = mask.shape
+    border = int(mask[0].sum() + mask[-1].sum() + mask[:, 0].sum() + mask[:, -1].sum())
+    m = {"coverage": float(mask.mean()), "border": border}
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)  # edges blend
+    if inner.sum() < 50:
+        return m
+    shot = srgb_to_linear(views.beauty[az][inner] / 255.0)
+    want = expected_albedo(albedo, views.u[az], views.v[az])[inner]
+    m["luminance"] = float(np.mean(views.beauty[az][inner] / 255.0 @ LUMA))
+    lum_shot, lum_want = shot @ LUMA, want @ LUMA
+    ratio = lum_shot[lum_want > 0.01] / lum_want[lum_want > 0.01]
+    if ratio.size > 50:
+        m["light"] = float(np.median(ratio))
+        p10, p90 = np.percentile(ratio, [10, 90])
+        m["spread"] = float(p90 / max(p10, 1e-9))
+    m["rgb_shot"], m["rgb_want"] = shot.mean(axis=0), want.mean(axis=0)
+    m["chroma"], m["specular"] = _chroma_fit(m["rgb_shot"], m["rgb_want"])
+    srgb_shot, srgb_want = shot ** (1 / 2.2) @ LUMA, want ** (1 / 2.2) @ LUMA
+    m["detail_std"] = float(srgb_want.std())
+    if m["detail_std"] >= MIN_DETAIL_STD:
+        m["detail_r"] = float(np.corrcoef(srgb_shot, srgb_want)[0, 1])
+    if reference is not None:
+        ref = reference.colours[reference.tree.query(views.local[az][inner])[1]]
+        m["photo_chroma"], _ = _chroma_fit(m["rgb_shot"], ref.mean(axis=0))
+        srgb_ref = ref ** (1 / 2.2) @ LUMA
+        if srgb_ref.std() >= MIN_DETAIL_STD:
+            m["photo_r"] = float(np.corrcoef(srgb_shot, srgb_ref)[0, 1])
+    rows, _ = np.nonzero(mask)
+    top, bottom = rows.min(), rows.max()
+    ymin, ymax = views.info["min"][1], views.info["max"][1]
+    height_m = ymin + views.height[az] * (ymax - ymin)  # metres above the table plane
+    base = inner & (np.abs(height_m) <= BASE_BAND * (ymax - ymin))
+    m["base_row"] = float((np.nonzero(base)[0].mean() - top) / max(bottom - top, 1)) if base.sum() >= 10 else None
+    top_rows = inner & (np.arange(h)[:, None] <= top + 0.05 * (bottom - top))
+    m["top_height"] = float(np.median(height_m[top_rows])) if top_rows.any() else None
+    return m
+
+
+def _span(values: list[float], fmt: str) -> str:
+    return format(min(values), fmt) if min(values) == max(values) else f"{min(values):{fmt}}-{max(values):{fmt}}"
+
+
+def glb_rows(name: str, views: Views, albedo: Albedo, reference: Reference | None = None) -> list[Row]:
+    rows = [Row(name, "loads", f"three.js r{views.info.get('three', '?')}, {views.info.get('triangles', 0):.0f} "
+                f"triangles" + (f"; errors: {'; '.join(views.errors)[:200]}" if views.errors else ""),
+                not views.errors and views.info.get("state", "ready") == "ready")]
+    textured = albedo.texture is not None or albedo.vertex_mean is not None
+    rows.append(Row(name, "textured", albedo.describe, textured and (albedo.texture is None or
+                                                                    views.info.get("texturedMeshes", 0) > 0)))
+    if not views.beauty:
+        return rows
+    lo, hi = np.asarray(views.info["min"]), np.asarray(views.info["max"])
+    height, size = hi[1] - lo[1], float(np.max(hi - lo))
+    centre = 0.5 * (lo + hi)
+    on_table = abs(lo[1]) <= ON_PLANE_TOL * height and hi[1] > 0 and np.hypot(centre[0], centre[2]) <= 0.5 * size
+    rows.append(Row(name, "on table", f"Y {lo[1]:.3f}..{hi[1]:.3f} m, centre XZ ({centre[0]:.3f}, {centre[2]:.3f}) m",
+                    bool(on_table)))
+    ms = {az: view_measures(views, albedo, az, reference) for az in views.beauty}
+
+    def each(key: str) -> list:
+        return [m.get(key) for m in ms.values()]
+
+    cov, border = each("coverage"), each("border")
+    rows.append(Row(name, "in frame", f"covers {_span([100 * c for c in cov], '.1f')} %, border px {max(border)}",
+                    all(MIN_COVERAGE <= c <= MAX_COVERAGE for c in cov) and max(border) == 0))
+    lum, light, spread = each("luminance"), each("light"), each("spread")
+    if None in lum or None in light:
+        rows.append(Row(name, "lit", "no measurable object pixels in some view", False))
+    else:
+        rows.append(Row(name, "lit", f"mean sRGB luminance {_span(lum, '.2f')}, rendered/albedo {_span(light, '.2f')}",
+                        min(lum) >= MIN_LUMINANCE and all(LIGHT_RANGE[0] <= x <= LIGHT_RANGE[1] for x in light)))
+    if None in spread:
+        rows.append(Row(name, "shading varies", "no measurable albedo", False))
+    else:
+        rows.append(Row(name, "shading varies", f"p90/p10 of rendered/albedo {_span(spread, '.2f')}",
+                        min(spread) >= MIN_SHADING_SPREAD))
+    chroma = each("chroma")
+    if None in chroma:
+        rows.append(Row(name, "colour", "no measurable object pixels", False))
+    else:
+        worst = int(np.argmax(chroma))
+        shot, want = (np.clip(ms[list(ms)[worst]][k], 0, 1) ** (1 / 2.2) * 255 for k in ("rgb_shot", "rgb_want"))
+        spec = _span(each("specular"), ".3f")
+        rows.append(Row(name, "colour", f"chromaticity off by {_span(chroma, '.3f')}, white specular {spec} "
+                        f"(worst view: drawn sRGB "
+                        f"{np.round(shot).astype(int).tolist()}, texture {np.round(want).astype(int).tolist()})",
+                        max(chroma) <= MAX_CHROMA_DIFF))
+    detail = [x for x in each("detail_r") if x is not None]
+    if detail:
+        rows.append(Row(name, "texture detail", f"r = {_span(detail, '.2f')} in {len(detail)} views (texel std "
+                        f"{_span([x for x in each('detail_std') if x is not None], '.2f')})",
+                        min(detail) >= MIN_DETAIL_R))
+    else:
+        rows.append(Row(name, "texture detail", "texels nearly uniform: not measured", None))
+    if reference is not None:
+        pc, pr = each("photo_chroma"), [x for x in each("photo_r") if x is not None]
+        if None in pc:
+            rows.append(Row(name, "photo colours", "no measurable object pixels", False))
+        else:
+            rows.append(Row(name, "photo colours", f"vs {reference.path.name}'s vertex colours at the drawn points: "
+                            f"chromaticity off by {_span(pc, '.3f')}" + (f", luminance r = {_span(pr, '.2f')}"
+                                                                         if pr else ""),
+                            max(pc) <= MAX_PHOTO_CHROMA_DIFF and (not pr or min(pr) >= MIN_DETAIL_R)))
+    base, top = each("base_row"), each("top_height")
+    if None in base or None in top:
+        rows.append(Row(name, "upright", "no pixels at the table plane in some view (base not at Y = 0?)", False))
+    else:
+        rows.append(Row(name, "upright", f"table-plane pixels at {_span(base, '.2f')} of the silhouette's height "
+                        f"(0 top, 1 bottom); top rows at {_span([t / max(hi[1], 1e-9) for t in top], '.2f')} "
+                        f"of max Y", min(base) >= BASE_LOW_QUARTER and hi[1] > 0 and
+                        min(top) >= TOP_BAND * hi[1]))
+    return rows
+
+
+# ---------------------------------------------------------------- USDZ
+
+ARKIT_PRIM_TYPES = {"", "Scope", "Xform", "Camera", "Shader", "Material", "Mesh", "Sphere", "Cube", "Cylinder",
+                    "Cone", "Capsule", "GeomSubset", "Points", "SkelRoot", "Skeleton", "SkelAnimation",
+                    "BlendShape", "SpatialAudio"}
+ARKIT_SHADER_IDS = {"UsdPreviewSurface", "UsdUVTexture", "UsdTransform2d"} | {
+    f"UsdPrimvarReader_{t}" for t in ("float", "float2", "float3", "float4", "int", "string", "normal", "point",
+                                      "vector", "matrix")}
+ARKIT_EXTENSIONS = {"usdc", "usd", "usda", "png", "jpg", "jpeg", "m4a", "mp3", "wav"}
+
+
+def usdchecker_rows(name: str, usdz: Path) -> list[Row]:
+    """usdchecker --arkit where it exists; else usd-core's validators and the ARKit profile's rules."""
+    exe = shutil.which("usdchecker") or shutil.which("usdchecker", path=str(Path(sys.executable).parent))
+    if exe:
+        r = subprocess.run([exe, "--arkit", str(usdz)], capture_output=True, text=True, timeout=120)
+        text = (r.stdout + r.stderr).strip().splitlines()
+        return [Row(name, "usdchecker --arkit", f"exit {r.returncode}: {(text[-1] if text else '')[:120]}",
+                    r.returncode == 0)]
+    from pxr import Usd, UsdValidation
+
+    stage = Usd.Stage.Open(str(usdz))
+    validators = UsdValidation.ValidationRegistry().GetOrLoadAllValidators()
+    errors = [e for e in UsdValidation.ValidationContext(validators).Validate(stage)
+              if e.GetType() == UsdValidation.ValidationErrorType.Error]
+    rows = [Row(name, "usd validators", f"{len(validators)} validators (usdchecker's rules; usd-core ships no "
+                f"usdchecker): {len(errors)} errors" + (f": {errors[0].GetMessage()[:120]}" if errors else ""),
+                not errors)]
+    problems = []
+    with zipfile.ZipFile(usdz) as z:
+        names = z.namelist()
+    if not names or not names[0].endswith(".usdc"):
+        problems.append(f"first file {names[:1]} is not a usdc layer")
+    problems += [f"{n}: file type not allowed" for n in names if n.rsplit(".", 1)[-1].lower() not in ARKIT_EXTENSIONS]
+    for prim in stage.Traverse():
+        if prim.GetTypeName() not in ARKIT_PRIM_TYPES:
+            problems.append(f"{prim.GetPath()}: prim type {prim.GetTypeName()}")
+        if prim.GetTypeName() == "Shader":
+            sid = prim.GetAttribute("info:id").Get()
+            if sid not in ARKIT_SHADER_IDS:
+                problems.append(f"{prim.GetPath()}: shader {sid}")
+    layers = stage.GetUsedLayers()
+    problems += [f"layer {ly.identifier} outside the package" for ly in layers
+                 if "[" not in ly.identifier and not ly.anonymous and ly.identifier != str(usdz)]
+    rows.append(Row(name, "ARKit rules", f"{len(names)} files {names}; " + ("; ".join(problems)[:160] or "no problem"),
+                    not problems))
+    return rows
+
+
+def usdz_rows(name: str, usdz: Path, albedo: Albedo | None, glb_bounds: np.ndarray | None) -> list[Row]:
+    if importlib.util.find_spec("pxr") is None:
+        return [Row(name, "usd-core", "not installed (pip install usd-core): USDZ not checked", None)]
+    from pxr import Usd, UsdGeom
+
+    rows = usdchecker_rows(name, usdz)
+    stage = Usd.Stage.Open(str(usdz))
+    up = UsdGeom.GetStageUpAxis(stage)
+    rows.append(Row(name, "up axis", str(up), up == UsdGeom.Tokens.y))
+    mpu = UsdGeom.GetStageMetersPerUnit(stage)
+    rows.append(Row(name, "metres per unit", f"{mpu:g}", abs(mpu - 1.0) < 1e-9))
+    meshes = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
+    rows.append(Row(name, "texture binding", *_texture_binding(stage, meshes, usdz, albedo)))
+    cache = UsdGeom.BBoxCache(Usd.TimeCode.Default(), [UsdGeom.Tokens.default_])
+    rng = cache.ComputeWorldBound(stage.GetPseudoRoot()).ComputeAlignedRange()
+    lo, hi = np.array(rng.GetMin()), np.array(rng.GetMax())
+    value = f"min {np.round(lo, 4).tolist()} max {np.round(hi, 4).tolist()} m"
+    if glb_bounds is not None:
+        diff = float(np.abs(np.concatenate([lo, hi]) - glb_bounds.ravel()).max())
+        rows.append(Row(name, "bounds", value + f"; vs GLB {1000 * diff:.2f} mm", diff <= 1e-3))
+    else:
+        rows.append(Row(name, "bounds", value, None))
+    return rows
+
+
+def _texture_binding(stage, meshes: list, usdz: Path, albedo: Albedo | None) -> tuple[str, bool]:
+    from pxr import UsdGeom, UsdShade
+
+    if len(meshes) != 1:
+        return f"{len(meshes)} meshes (expected 1)", False
+    mesh = meshes[0]
+    material, _ = UsdShade.MaterialBindingAPI(mesh).ComputeBoundMaterial()
+    if not material:
+        return f"{mesh.GetPath()} has no bound material", False
+    surface = material.ComputeSurfaceSource()[0]
+    if not surface or surface.GetIdAttr().Get() != "UsdPreviewSurface":
+        return "the material's surface is not a UsdPreviewSurface", False
+    diffuse = surface.GetInput("diffuseColor")
+    src = diffuse.GetConnectedSources()[0] if diffuse and diffuse.HasConnectedSource() else []
+    if not src or UsdShade.Shader(src[0].source.GetPrim()).GetIdAttr().Get() != "UsdUVTexture":
+        return "diffuseColor is not fed by a UsdUVTexture", False
+    tex = UsdShade.Shader(src[0].source.GetPrim())
+    asset = tex.GetInput("file").Get()
+    space = tex.GetInput("sourceColorSpace").Get() if tex.GetInput("sourceColorSpace") else None
+    st_in = tex.GetInput("st")
+    reader = st_in.GetConnectedSources()[0] if st_in and st_in.HasConnectedSource() else []
+    varname = UsdShade.Shader(reader[0].source.GetPrim()).GetInput("varname").Get() if reader else None
+    primvar = UsdGeom.PrimvarsAPI(mesh).GetPrimvar(str(varname)) if varname else None
+    with zipfile.ZipFile(usdz) as z:
+        inside = asset.path in z.namelist()
+        data = z.read(asset.path) if inside else b""
+    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) if data else None
+    problems = []
+    if bgr is None:
+        problems.append(f"texture {asset.path!r} not a PNG/JPEG inside the package")
+    if space != "sRGB":
+        problems.append(f"sourceColorSpace {space}")
+    if not primvar or not primvar.IsDefined() or str(primvar.GetTypeName()) != "texCoord2f[]":
+        problems.append(f"st reader's varname {varname!r} is no texCoord2f[] primvar of the mesh")
+    same = ""
+    if bgr is not None and albedo is not None and albedo.texture is not None:
+        usd_mean = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).reshape(-1, 3).mean(axis=0)
+        d = float(np.abs(usd_mean - albedo.texture.reshape(-1, 3).mean(axis=0)).max()) \
+            if bgr.shape == albedo.texture.shape else float("inf")
+        same = f", mean colour vs the GLB's texture {d:.2f} DN"
+        if d > 1.0:
+            problems.append("not the GLB's texture")
+    value = (f"UsdPreviewSurface.diffuseColor <- UsdUVTexture({asset.path}, {space}) <- primvar {varname}"
+             + (f" {bgr.shape[1]}x{bgr.shape[0]}" if bgr is not None else "") + same)
+    return value + ("; " + "; ".join(problems) if problems else ""), not problems
+
+
+# ---------------------------------------------------------------- driver
+
+def check_models(models: dict[str, bytes], three: Path, chromium: str = CHROMIUM, screenshots: Path | None = None,
+                 azimuths: tuple[int, ...] = AZIMUTHS_DEG, reference: Reference | None = None,
+                 window: tuple[int, int] = WINDOW) -> list[Row]:
+    """Every GLB (name: bytes) drawn from these azimuths in one browser; the check rows of all."""
+    rows: list[Row] = []
+    server = Server(three, models)
+    try:
+        with _web_view_mod().Chromium(chromium, window) as browser:
+            for name, data in models.items():
+                views = render(browser, server.url, name, azimuths)
+                rows += glb_rows(name, views, glb_albedo(*read_glb(data, name)), reference)
+                if screenshots is not None:
+                    screenshots.mkdir(parents=True, exist_ok=True)
+                    for az, rgb in views.beauty.items():
+                        cv2.imwrite(str(screenshots / f"{name}_az{az:03d}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    finally:
+        server.close()
+    return rows
+
+
+def print_table(rows: list[Row]) -> None:
+    print("| model | check | value | result |")
+    print("|---|---|---|---|")
+    for r in rows:
+        result = "-" if r.ok is None else ("pass" if r.ok else "FAIL")
+        print(f"| {r.model} | {r.check} | {r.value} | {result} |")
+
+
+def _inputs(target: Path) -> tuple[Path | None, Path | None]:
+    if target.is_dir():
+        glb, usdz = target / "model.glb", target / "model.usdz"
+        if not glb.is_file() and not usdz.is_file():
+            raise CheckError(f"{target}: no model.glb or model.usdz in it")
+        return (glb if glb.is_file() else None), (usdz if usdz.is_file() else None)
+    if not target.is_file():
+        raise CheckError(f"{target}: no such file or folder")
+    if target.suffix.lower() == ".glb":
+        sibling = target.with_suffix(".usdz")
+        return target, (sibling if sibling.is_file() else None)
+    if target.suffix.lower() == ".usdz":
+        return None, target
+    raise CheckError(f"{target}: expected a .glb, a .usdz or a reconstruction folder")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("target", type=Path, help="a reconstruction folder (model.glb, model.usdz) or a .glb/.usdz")
+    ap.add_argument("--screenshots", type=Path, help="write the viewer's pictures here (NAME_azDDD.png)")
+    ap.add_argument("--negatives", action="store_true",
+                    help="also check broken copies of the GLB (upside down, no texture, black texture, flipped "
+                    "v, out of frame): each must fail")
+    ap.add_argument("--three", help="three.js's package folder (default: see the module docstring)")
+    ap.add_argument("--install-three", action="store_true", help=f"npm install three into {THREE_CACHE} if missing")
+    ap.add_argument("--chromium", default=CHROMIUM, help=f"the browser (default {CHROMIUM})")
+    args = ap.parse_args(argv)
+    try:
+        glb, usdz = _inputs(args.target)
+        glb_data = glb.read_bytes() if glb else None
+        gltf, binary = read_glb(glb_data, str(glb)) if glb_data else (None, b"")
+    except (CheckError, OSError, ValueError) as e:
+        print(f"viewer_check: error: {e}", file=sys.stderr)
+        return 2
+    rows: list[Row] = []
+    missing = ""
+    negatives_ok = True
+    if glb_data is not None:
+        three = find_three(args.three) or (install_three() if args.install_three else None)
+        if three is None:
+            missing = "three.js not found (--install-three, --three DIR or $TURNTABLE_THREE)"
+        elif not Path(args.chromium).exists():
+            missing = f"{args.chromium} not found (apt-get install chromium)"
+        else:
+            models = {"model": glb_data}
+            if args.negatives:
+                models.update(negative_models(glb_data))
+            t0 = time.perf_counter()
+            reference = photo_reference(glb) if glb is not None else None
+            all_rows = check_models(models, three, args.chromium, args.screenshots, reference=reference)
+            print(f"viewer_check: {len(models)} model(s) x {len(AZIMUTHS_DEG)} views x {len(PASSES)} passes in "
+                  f"{time.perf_counter() - t0:.1f} s, {WINDOW[0]}x{WINDOW[1]}, headless Chromium (SwiftShader)\n")
+            rows += [r for r in all_rows if r.model == "model"]
+            for name in models:
+                if name == "model":
+                    continue
+                failed = [r.check for r in all_rows if r.model == name and r.ok is False]
+                negatives_ok &= bool(failed)
+                rows.append(Row(name, "must fail", "fails: " + (", ".join(failed) or "nothing"), bool(failed)))
+    if usdz is not None:
+        bounds = None
+        albedo = None
+        if gltf is not None:
+            prim = gltf["meshes"][0]["primitives"][0]
+            acc = gltf["accessors"][prim["attributes"]["POSITION"]]
+            bounds = np.array([acc["min"], acc["max"]], np.float64)
+            albedo = glb_albedo(gltf, binary)
+        rows += usdz_rows("model.usdz", usdz, albedo, bounds)
+    print_table(rows)
+    if missing:
+        print(f"\nviewer_check: GLB skipped: {missing}")
+    failed = [r for r in rows if r.ok is False]
+    print("\nviewer_check: " + ("ok" if not failed and negatives_ok else f"FAILED: {len(failed)} check(s)"))
+    if failed:
+        return 1
+    return 3 if missing else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

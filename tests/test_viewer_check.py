@@ -1,0 +1,141 @@
+"""benchmarks/viewer_check.py: a reconstruction's GLB in three.js (headless Chromium) and its USDZ in usd-core.
+
+The reconstruction is a small synthetic one (a vase with the synthetic
+renderer's procedural texture, 8 frames 320x240, true cameras and masks,
+``--resolution 32 --no-fusion --texture-size 256``), drawn from two azimuths
+at 480x360. The GLB checks must pass on it and fail on each broken copy
+(upside down, texture removed, texture black, out of frame, texture flipped on
+the surface: only the comparison with model.ply's photo colours can see that);
+the USDZ checks must pass on it and fail on a copy with Z up in centimetres and
+on one whose diffuseColor reads no texture. The GLB part skips without
+Chromium or three.js (``benchmarks/viewer_check.py --install-three`` installs
+it with npm into ~/.cache/turntable-viewer; nothing in ``make test`` needs npm);
+the USDZ part skips without usd-core.
+"""
+
+import importlib.util
+import shutil
+import sys
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from turntable.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _viewer_check():
+    spec = importlib.util.spec_from_file_location("viewer_check", ROOT / "benchmarks" / "viewer_check.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+vc = _viewer_check()
+
+
+@pytest.fixture(scope="module")
+def recon(tmp_path_factory) -> Path:
+    work = tmp_path_factory.mktemp("viewer_check")
+    seq, out = work / "S", work / "R"
+    assert main(["synth", str(seq), "--object", "vase", "--frames", "8", "--size", "320x240", "--focal-px", "380",
+                 "--elevation-deg", "35", "--distance-mm", "430", "--supersample", "1"]) == 0
+    assert main(["reconstruct", str(seq / "images"), "--cameras", str(seq / "cameras_gt.json"), "--masks",
+                 str(seq / "masks"), "--resolution", "32", "--no-fusion", "--texture-size", "256", "--out", str(out),
+                 "--quiet"]) == 0
+    return out
+
+
+def _renderer_or_skip() -> Path:
+    if not Path(vc.CHROMIUM).exists():
+        pytest.skip(f"{vc.CHROMIUM} not found (apt-get install chromium)")
+    three = vc.find_three()
+    if three is None:
+        why = "node/npm not installed" if shutil.which("npm") is None else \
+            "run benchmarks/viewer_check.py --install-three (npm) or set TURNTABLE_THREE"
+        pytest.skip(f"three.js not found: {why}")
+    return three
+
+
+def _failed(rows, model: str) -> set[str]:
+    return {r.check for r in rows if r.model == model and r.ok is False}
+
+
+def test_glb_passes_in_three_js_and_broken_copies_fail(recon, tmp_path):
+    three = _renderer_or_skip()
+    glb = (recon / "model.glb").read_bytes()
+    models = {"model": glb, **vc.negative_models(glb)}
+    reference = vc.photo_reference(recon / "model.glb")
+    assert reference is not None and reference.path.name == "model.ply"
+    rows = vc.check_models(models, three, screenshots=tmp_path, azimuths=(0, 180), reference=reference,
+                           window=(480, 360))
+    vc.print_table(rows)
+    ok = {r.check for r in rows if r.model == "model" and r.ok}
+    assert _failed(rows, "model") == set()
+    assert {"loads", "textured", "on table", "in frame", "lit", "shading varies", "colour", "texture detail",
+            "photo colours", "upright"} <= ok  # the procedural texture varies: the correlations are measured
+    assert {"upright", "on table"} <= _failed(rows, "upside_down")
+    assert "textured" in _failed(rows, "no_texture")
+    assert "lit" in _failed(rows, "black_texture")
+    assert "in frame" in _failed(rows, "out_of_frame")
+    assert _failed(rows, "flipped_v") == {"photo colours"}  # consistent with its own UVs, not with the photos
+    assert sorted(p.name for p in tmp_path.glob("model_az*.png")) == ["model_az000.png", "model_az180.png"]
+
+
+def _repackaged(usdz: Path, work: Path, edit) -> Path:
+    """A copy of the USDZ whose layer ``edit(stage)`` changed, packaged again with usd-core."""
+    from pxr import Sdf, Usd, UsdUtils
+
+    work.mkdir()
+    with zipfile.ZipFile(usdz) as z:
+        z.extractall(work)
+        layer = work / z.namelist()[0]
+    stage = Usd.Stage.Open(str(layer))
+    edit(stage)
+    stage.GetRootLayer().Save()
+    out = work / "broken.usdz"
+    assert UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(layer)), str(out))
+    return out
+
+
+def test_usdz_checks_pass_and_broken_copies_fail(recon, tmp_path):
+    pytest.importorskip("pxr", reason="usd-core not installed (pip install usd-core, the extra turntable[usd])")
+    from pxr import UsdGeom, UsdShade
+
+    gltf, binary = vc.read_glb((recon / "model.glb").read_bytes())
+    albedo = vc.glb_albedo(gltf, binary)
+    acc = gltf["accessors"][gltf["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]
+    bounds = np.array([acc["min"], acc["max"]])
+    rows = vc.usdz_rows("usdz", recon / "model.usdz", albedo, bounds)
+    assert [r.check for r in rows if not r.ok] == []
+    assert {"usd validators", "ARKit rules", "up axis", "metres per unit", "texture binding", "bounds"} <= \
+        {r.check for r in rows}
+
+    def z_up_cm(stage):
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+        UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+
+    def no_texture(stage):
+        surface = next(UsdShade.Shader(p) for p in stage.Traverse()
+                       if p.GetTypeName() == "Shader" and UsdShade.Shader(p).GetIdAttr().Get() == "UsdPreviewSurface")
+        surface.GetInput("diffuseColor").DisconnectSource()
+
+    rows = vc.usdz_rows("z", _repackaged(recon / "model.usdz", tmp_path / "z", z_up_cm), albedo, bounds)
+    assert {"up axis", "metres per unit"} <= {r.check for r in rows if r.ok is False}
+    rows = vc.usdz_rows("t", _repackaged(recon / "model.usdz", tmp_path / "t", no_texture), albedo, bounds)
+    assert {r.check for r in rows if r.ok is False} == {"texture binding"}
+
+
+def test_bad_input_is_a_clear_error(tmp_path, capsys):
+    assert vc.main([str(tmp_path / "missing")]) == 2
+    assert "no such file or folder" in capsys.readouterr().err
+    (tmp_path / "model.glb").write_bytes(b"not a glb at all")
+    assert vc.main([str(tmp_path)]) == 2
+    assert "not a binary glTF" in capsys.readouterr().err
+    (tmp_path / "model.txt").write_text("hello")
+    assert vc.main([str(tmp_path / "model.txt")]) == 2
+    assert "expected a .glb, a .usdz or a reconstruction folder" in capsys.readouterr().err
