@@ -129,6 +129,12 @@ def test_usdz_checks_pass_and_broken_copies_fail(recon, tmp_path):
     rows = vc.usdz_rows("t", _repackaged(recon / "model.usdz", tmp_path / "t", no_texture), albedo, bounds)
     assert {r.check for r in rows if r.ok is False} == {"texture binding"}
 
+    def curves(stage):  # a prim type AR Quick Look does not draw
+        UsdGeom.BasisCurves.Define(stage, "/model/hair")
+
+    rows = vc.usdz_rows("c", _repackaged(recon / "model.usdz", tmp_path / "c", curves), albedo, bounds)
+    assert {r.check for r in rows if r.ok is False} == {"ARKit rules"}
+
 
 def test_bad_input_is_a_clear_error(tmp_path, capsys):
     assert vc.main([str(tmp_path / "missing")]) == 2
