@@ -1,11 +1,15 @@
-"""`turntable batch` on a local Ray: four small rendered objects, one broken on purpose.
+"""`turntable batch` on Ray: four small rendered objects, one broken on purpose.
 
 Each job is an 8-frame 320x240 sequence with its true cameras and masks, carved at
-32^3 without fusion (a few seconds). One batch run is shared by most tests; while
-it runs, the test kills the worker of one object with SIGKILL, and Ray's retry
-must still finish it. A second run with --resume redoes only what changed.
-Then a two-node ``ray.cluster_utils.Cluster`` joined through --address, and a batch
-interrupted by SIGINT (a subprocess, as Ctrl-C reaches it).
+32^3 without fusion (a few seconds). One batch run is shared by most tests: it runs
+on a simulated two-node cluster (``ray.cluster_utils.Cluster``, one core a node,
+joined through --address), so the jobs must spread over both nodes; while it runs,
+the test kills the worker of one object with SIGKILL, and Ray's retry must still
+finish it. A second run, on a local Ray started by the command (the default), lists
+the same jobs in a manifest with --resume: it redoes only what changed (the
+manifest's jobs are the same jobs as ROOT's). Then a batch interrupted by SIGINT (a
+subprocess, as Ctrl-C reaches it), and manifests with bad rows (exit 2 before any
+job runs).
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ import cv2
 import numpy as np
 import pytest
 
-from turntable.batch import THUMB_PX, read_settings
+from turntable.batch import THUMB_PX, read_manifest, read_settings, render_thumbnail
 from turntable.cli import main
 from turntable.cli.batch import settings_types
 from turntable.errors import UserError
@@ -74,12 +78,21 @@ def _kill_first_attempt(marker: Path, killed: list) -> None:
 
 @pytest.fixture(scope="module")
 def first(root, tmp_path_factory):
+    from ray.cluster_utils import Cluster
+
     out = tmp_path_factory.mktemp("out") / "batch"
     killed: list[int] = []
     killer = threading.Thread(target=_kill_first_attempt, args=(out / ".batch" / "b.running", killed), daemon=True)
-    killer.start()
-    code = main(["batch", str(root), "--out", str(out), *JOB_FLAGS, "--retries", "1", "-q"])
-    killer.join(timeout=5)
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+    try:
+        cluster.add_node(num_cpus=1)
+        cluster.wait_for_nodes()
+        killer.start()
+        code = main(["batch", str(root), "--out", str(out), *JOB_FLAGS, "--retries", "1", "--address",
+                     cluster.address, "-q"])
+        killer.join(timeout=5)
+    finally:
+        cluster.shutdown()
     rows = {r["object"]: r for r in json.loads((out / "batch.json").read_text())["rows"]}
     return code, out, rows, killed
 
@@ -137,6 +150,34 @@ def test_report_files(first):
         assert (np.abs(img.astype(int) - 245).sum(2) > 30).mean() > 0.05  # the object covers part of the picture
 
 
+def test_thumbnail_shows_the_texture(tmp_path):
+    """A textured model's thumbnail is its texture (as the GLB shows it), not the PLY's vertex colours: a
+    standing square, grey vertex colours, a texture red on its top half and blue below."""
+    import trimesh
+
+    from recon.export import glb_bytes, png_bytes
+
+    V = np.array([[-40.0, 0, 0], [40, 0, 0], [40, 80, 0], [-40, 80, 0]]) / 1000  # metres, +Y up, facing +Z
+    F = np.array([[0, 1, 2], [0, 2, 3]])
+    uv = np.array([[0.0, 1], [1, 1], [1, 0], [0, 0]])  # glTF: v down from the texture's top row
+    tex = np.zeros((64, 64, 3), np.uint8)
+    tex[:32] = (220, 30, 30)
+    tex[32:] = (30, 30, 220)
+    (tmp_path / "model.glb").write_bytes(glb_bytes(V, F, np.tile([0.0, 0, 1], (4, 1)), texcoords=uv,
+                                                   texture_png=png_bytes(tex)))
+    (tmp_path / "model_albedo.png").write_bytes(png_bytes(tex))
+    trimesh.Trimesh(V, F, vertex_colors=np.full((4, 3), 128, np.uint8), process=False).export(tmp_path / "model.ply")
+    img = render_thumbnail(tmp_path).astype(int)
+    red = (img[..., 0] > 120) & (img[..., 2] < 80)
+    blue = (img[..., 2] > 120) & (img[..., 0] < 80)
+    assert red.sum() > 500 and blue.sum() > 500, (red.sum(), blue.sum())
+    assert np.nonzero(red)[0].mean() < np.nonzero(blue)[0].mean()  # red above blue: the picture upright
+    (tmp_path / "model_albedo.png").unlink()  # not textured: the vertex colours
+    img = render_thumbnail(tmp_path).astype(int)
+    obj = np.abs(img - 245).sum(2) > 30
+    assert obj.mean() > 0.05 and np.ptp(img[obj], axis=1).max() < 8  # grey, shaded
+
+
 def test_batch_output_equals_a_separate_run(first, root, tmp_path):
     _, out, _, _ = first
     sep = tmp_path / "a"
@@ -149,18 +190,65 @@ def test_batch_output_equals_a_separate_run(first, root, tmp_path):
         assert (sep / name).read_bytes() == (out / "a" / name).read_bytes(), name
 
 
-def test_resume_redoes_only_what_changed(first, root):
+def test_resume_from_a_manifest_redoes_only_what_changed(first, root):
     _, out, _, _ = first
     before = {k: (out / k / "model.glb").stat().st_mtime_ns for k in "abc"}
     img = sorted((root / "a" / "images").iterdir())[0]
     os.utime(img, ns=(img.stat().st_atime_ns, img.stat().st_mtime_ns + 10**9))  # a's input changed
-    code = main(["batch", str(root), "--out", str(out), *JOB_FLAGS, "--resume", "-q"])
+    # the same jobs as ROOT's, listed: c's own turntable.toml still applies; d named by default
+    manifest = root.parent / "jobs.csv"
+    manifest.write_text("name,input,resolution\na,root/a,\nb,root/b,32\nc,root/c,\n,root/d,\n")
+    code = main(["batch", "--manifest", str(manifest), "--out", str(out), *JOB_FLAGS, "--resume", "-q"])
     assert code == 1  # d still fails
     rows = {r["object"]: r for r in json.loads((out / "batch.json").read_text())["rows"]}
-    assert [k for k, r in rows.items() if r["resumed"]] == ["b", "c"]
+    assert list(rows) == ["a", "b", "c", "d"]
+    assert [k for k, r in rows.items() if r["resumed"]] == ["b", "c"]  # same options and inputs as ROOT's jobs
     assert (out / "b" / "model.glb").stat().st_mtime_ns == before["b"]
     assert (out / "c" / "model.glb").stat().st_mtime_ns == before["c"]
     assert (out / "a" / "model.glb").stat().st_mtime_ns != before["a"] and rows["a"]["status"] == "ok"
+    assert rows["a"]["node"] not in {r["node"] for r in first[2].values()}  # a Ray of its own: not the cluster's
+
+
+def _bad(tmp_path, manifest: str, text: str, capsys) -> str:
+    (tmp_path / manifest).write_text(text)
+    out = tmp_path / "out"
+    assert main(["batch", "--manifest", str(tmp_path / manifest), "--out", str(out), *JOB_FLAGS]) == 2
+    assert not out.exists()  # nothing ran, nothing written
+    return capsys.readouterr().err
+
+
+def test_manifest_rows_checked_before_any_job(root, tmp_path, capsys):
+    for k in "ab":
+        shutil.copytree(root / k, tmp_path / "objs" / k)
+    csv_text = "name,input,r-outer,fusion\nvase,objs/a,80,false\ncup,objs/b,,\n"
+    (tmp_path / "jobs.csv").write_text(csv_text)
+    entries = read_manifest(tmp_path / "jobs.csv", settings_types())
+    assert [(e.name, e.path, e.settings) for e in entries] == [
+        ("vase", tmp_path / "objs" / "a", {"r_outer": 80, "no_fusion": True}), ("cup", tmp_path / "objs" / "b", {})]
+    (tmp_path / "jobs.toml").write_text('[[jobs]]\nname = "vase"\ninput = "objs/a"\nr-outer = 80\nfusion = false\n'
+                                        '[[jobs]]\nname = "cup"\ninput = "objs/b"\n')
+    (tmp_path / "jobs.json").write_text('{"jobs": [{"name": "vase", "input": "objs/a", "r_outer": 80, '
+                                        '"no-fusion": true}, {"name": "cup", "input": "objs/b"}]}')
+    for f in ("jobs.toml", "jobs.json"):
+        assert read_manifest(tmp_path / f, settings_types()) == [
+            e.__class__(name=e.name, path=e.path, settings=e.settings, where=e.where.replace(
+                f"jobs.csv: line {i + 2}", f"{f}: job {i + 1}")) for i, e in enumerate(entries)]
+    head = "name,input,resolution\n"
+    err = _bad(tmp_path, "m.csv", head + "a,objs/a,32\nb,objs/b,sixty\n", capsys)
+    assert "m.csv: line 3 (b): resolution = 'sixty': expected int" in err
+    err = _bad(tmp_path, "m.csv", head + "a,objs/a,32\nb,objs/b,8\n", capsys)  # reconstruct's own checks
+    assert "m.csv: line 3 (b): --resolution must be between 16 and 1024, got 8" in err
+    err = _bad(tmp_path, "m.csv", head + "a,objs/a,\nA,objs/b,\n", capsys)
+    assert "m.csv: line 3 (A): name 'A' already used by line 2" in err
+    err = _bad(tmp_path, "m.csv", head + "a,objs/missing,\n", capsys)
+    assert "m.csv: line 2: input 'objs/missing'" in err and "not found" in err
+    err = _bad(tmp_path, "m.csv", "name,input,colour\na,objs/a,red\n", capsys)
+    assert "m.csv: line 2 (a): unknown setting 'colour'" in err
+    err = _bad(tmp_path, "m.toml", '[[jobs]]\nname = "thumbnails"\ninput = "objs/a"\n', capsys)
+    assert "m.toml: job 1: name 'thumbnails'" in err
+    err = _bad(tmp_path, "m.json", '{"jobs": [{"name": "a", "input": "objs/a", "masks": 3}]}', capsys)
+    assert "m.json: job 1 (a): masks = 3: expected str" in err
+    assert main(["batch", str(root), "--manifest", str(tmp_path / "jobs.csv"), "--out", str(tmp_path / "o")]) == 2
 
 
 def test_bad_arguments_exit_2(root, tmp_path):
@@ -169,23 +257,9 @@ def test_bad_arguments_exit_2(root, tmp_path):
     assert main(["batch", str(root), "--out", str(tmp_path / "o"), *JOB_FLAGS[:4], "--resolution", "5"]) == 2
 
 
-def test_jobs_spread_over_two_nodes(root, tmp_path):
-    from ray.cluster_utils import Cluster
-
-    small = tmp_path / "root"
-    for k in "abc":
-        shutil.copytree(root / k, small / k)
-    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
-    try:
-        cluster.add_node(num_cpus=1)
-        cluster.wait_for_nodes()
-        out = tmp_path / "out"
-        code = main(["batch", str(small), "--out", str(out), *JOB_FLAGS, "--address", cluster.address, "-q"])
-        assert code == 0
-        rows = json.loads((out / "batch.json").read_text())["rows"]
-        assert len({r["node"] for r in rows}) == 2, [r["node"] for r in rows]
-    finally:
-        cluster.shutdown()
+def test_jobs_spread_over_two_nodes(first):
+    _, _, rows, _ = first
+    assert len({r["node"] for r in rows.values()}) == 2, [r["node"] for r in rows.values()]
 
 
 def test_ctrl_c_stops_cleanly_and_keeps_what_finished(root, tmp_path):

@@ -17,9 +17,12 @@ PER_OBJECT_PATHS = ("masks", "cameras")
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("root", metavar="ROOT",
+    parser.add_argument("root", metavar="ROOT", nargs="?",
                         help="folder with one folder (or video) per object; an object's folder may hold a "
                              "turntable.toml (or turntable.json) whose settings override the command line")
+    parser.add_argument("--manifest", metavar="FILE",
+                        help="instead of ROOT: a .csv, .toml or .json file listing the jobs (name, input "
+                             "folder or video relative to the file's folder, the object's own settings)")
     add_target_arguments(parser, required=False,
                          optional_note="; per object in turntable.toml; optional with --cameras")
     parser.add_argument("--out", required=True, metavar="OUT",
@@ -48,6 +51,9 @@ _ADDRESS = re.compile(r"^(auto|ray://[^\s:/]+:\d+|[^\s:/]+:\d+)$")
 
 
 def _check(args) -> None:
+    if (args.root is None) == (args.manifest is None):
+        raise UserError("give ROOT (one folder or video per object) or --manifest FILE (the jobs listed), "
+                        + ("not both" if args.root else "one of them"))
     if args.cpus_per_job < 1:
         raise UserError(f"--cpus-per-job must be 1 or more, got {args.cpus_per_job}")
     if args.retries < 0:
@@ -55,8 +61,8 @@ def _check(args) -> None:
     if args.address is not None and not _ADDRESS.match(args.address):
         raise UserError(f"--address must be 'auto', ray://HOST:PORT or HOST:PORT, got {args.address!r}")
     # the shared options' own checks, once for the whole batch (an object's turntable.toml is checked with it)
-    probe = argparse.Namespace(**{**vars(args), "input": args.root, "out": args.out, "masks": None, "cameras": None,
-                                  "spawn": False})
+    probe = argparse.Namespace(**{**vars(args), "input": args.root or args.manifest, "out": args.out, "masks": None,
+                                  "cameras": None, "spawn": False})
     if probe.r_outer is None and probe.r_inner is None:
         probe.cameras = __file__  # the radii may come from each object's settings, or --cameras
     options_from_args(probe)
@@ -83,8 +89,9 @@ def settings_types() -> dict[str, tuple[type, ...]]:
     return types
 
 
-def job_namespace(args, name: str, path: Path, out: Path) -> argparse.Namespace:
-    """The ``reconstruct`` arguments of one object: the command line, then its own settings on top."""
+def job_namespace(args, name: str, path: Path, out: Path, row: dict | None = None) -> argparse.Namespace:
+    """The ``reconstruct`` arguments of one object: the command line, then its own settings file on top,
+    then (``row``) its manifest entry's settings."""
     from ..batch import object_input, read_settings
 
     ns = argparse.Namespace(**vars(args))
@@ -93,22 +100,30 @@ def job_namespace(args, name: str, path: Path, out: Path) -> argparse.Namespace:
         value = getattr(args, key)
         if value is not None and not Path(value).is_absolute() and path.is_dir():
             setattr(ns, key, str(path / value))
-    for key, value in read_settings(path, settings_types()).items():
+    for key, value in {**read_settings(path, settings_types()), **(row or {})}.items():
         setattr(ns, key, value)
     return ns
 
 
 def build_jobs(args, out: Path) -> list:
-    from ..batch import Job, find_objects, inputs_digest, memory_estimate
+    """One :class:`~turntable.batch.Job` per object. ROOT: an object whose settings are bad is a failed job;
+    a manifest: every row is checked first, a bad one is a ``UserError`` naming the file and the row."""
+    from ..batch import Job, find_objects, inputs_digest, memory_estimate, read_manifest
 
-    objects = find_objects(Path(args.root), out)
-    if not objects:
-        raise UserError(f"{args.root}: no objects (expected one folder or video per object)")
+    if args.manifest is not None:
+        entries = read_manifest(Path(args.manifest), settings_types())
+        objects = [(e.name, e.path, e.settings, e.where) for e in entries]
+    else:
+        objects = [(name, path, None, None) for name, path in find_objects(Path(args.root), out)]
+        if not objects:
+            raise UserError(f"{args.root}: no objects (expected one folder or video per object)")
     jobs = []
-    for name, path in objects:
+    for name, path, row, where in objects:
         try:
-            opts = options_from_args(job_namespace(args, name, path, out))
+            opts = options_from_args(job_namespace(args, name, path, out, row))
         except UserError as exc:
+            if where is not None:  # a manifest's row: nothing runs until every row is right
+                raise UserError(f"{where}: {exc}") from None
             jobs.append(Job(name=name, path=path, opts=None, error=str(exc)))
             continue
         jobs.append(Job(name=name, path=path, opts=opts, digest=inputs_digest(opts),
