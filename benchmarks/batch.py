@@ -9,8 +9,13 @@ backdrop, seeded; cached in ``--cache``), then
    job: ``--cpus-per-job 1``), timed end to end (Ray's start included);
 
 and checks that every batch output equals its serial run: ``cameras.json`` (K, distortion and
-every ``T_cam_table`` to 1e-9) and the model files byte for byte (``model.ply``, ``model.glb``,
-``model.obj``, the texture). Bar (issue 14): batch wall <= 0.75 x the sum of the serial walls.
+every ``T_cam_table`` to 1e-9), the mesh (positions, faces, colours) and every file reconstruct
+writes byte for byte (the models, the texture, ``points.ply``, ``cameras.json``; not
+``summary.json``, whose times differ, nor ``recording.rrd``). The options are the defaults but
+smaller (``--extra``): fusion and texture on. For reference the first object is reconstructed
+again, the same command, and with ``--threads 1``: the batch's jobs run one thread each
+(``--cpus-per-job 1``), the serial runs every core, so a thread-count dependence shows in both.
+Bar (issue 14): batch wall <= 0.75 x the sum of the serial walls; outputs identical.
 
 ``--capacity MP ...``: the cost of one object at those sizes — ``data/sample`` (36 frames)
 upscaled as ``benchmarks/resolution.py`` does, one ``reconstruct`` with default options: its
@@ -43,7 +48,7 @@ KINDS = [("vase", "dark"), ("cup", "dark"), ("chair", "dark"), ("figure", "dark"
          ("vase", "light"), ("cup", "light"), ("chair", "light"), ("figure", "light")]
 TARGET = ["--r-outer", "80", "--r-inner", "50", "--stroke", "3"]
 POSE_TOL = 1e-9  # cameras.json: K, distortion, T_cam_table (mm and unitless)
-MODEL_FILES = ("model.ply", "model.glb", "model.obj", "model.mtl", "model_albedo.png")
+SKIP = ("summary.json", "recording.rrd")  # times; the recording's own timestamps
 
 
 def render(cache: Path, n: int, size: tuple[int, int], frames: int) -> list[Path]:
@@ -98,19 +103,25 @@ def mesh_digest(ply: Path) -> tuple[str, np.ndarray]:
     return h.hexdigest(), np.asarray(m.vertex_normals, np.float64)
 
 
+def _outputs(d: Path) -> set[str]:
+    """Every file reconstruct wrote in OUT (not its stage cache ``.turntable``) but :data:`SKIP`."""
+    return {p.relative_to(d).as_posix() for p in d.rglob("*")
+            if p.is_file() and ".turntable" not in p.relative_to(d).parts and p.name not in SKIP}
+
+
 def compare(serial: Path, batch: Path) -> tuple[float, bool, float, list[str]]:
-    """Cameras' largest difference; same mesh digest; largest normal difference; the model files that are not
-    byte-identical."""
+    """Cameras' largest difference; same mesh digest; largest normal difference; the files (all that
+    reconstruct writes but :data:`SKIP`) that are not byte-identical or not on both sides."""
     cams = same_cameras(serial / "cameras.json", batch / "cameras.json")
     (da, na), (db, nb) = mesh_digest(serial / "model.ply"), mesh_digest(batch / "model.ply")
     normals = float(np.abs(na - nb).max()) if na.shape == nb.shape else np.inf
-    differ = [n for n in MODEL_FILES if (serial / n).exists() != (batch / n).exists()
-              or ((serial / n).exists() and (serial / n).read_bytes() != (batch / n).read_bytes())]
+    a, b = _outputs(serial), _outputs(batch)
+    differ = sorted(a ^ b) + [n for n in sorted(a & b) if (serial / n).read_bytes() != (batch / n).read_bytes()]
     return cams, da == db, normals, differ
 
 
 def _files(differ: list[str]) -> str:
-    return "identical" if not differ else "differ: " + ",".join(differ)
+    return "all identical" if not differ else "differ: " + ",".join(differ)
 
 
 def capacity(sizes: list[float], work: Path) -> None:
@@ -169,7 +180,7 @@ def main(argv: list[str]) -> int:
         report = json.loads((work / "batch" / "batch.json").read_text())
         print(f"\nbatch: exit {brc}, {report['counts']}")
         print(f"{'object':<18} {'status':<13} {'job s':>6} {'cameras |d|':>11} {'mesh digest':>11} "
-              f"{'normals |d|':>11}  model files")
+              f"{'normals |d|':>11}  files (all reconstruct writes but {', '.join(SKIP)})")
         worst, same_mesh, identical = 0.0, True, True
         for (name, *_, rc), r in zip(rows, report["rows"], strict=True):
             if rc == 2 or r["status"] == "failed":  # no model: the same failure on both sides is all to compare
@@ -182,18 +193,22 @@ def main(argv: list[str]) -> int:
             identical &= not differ
             print(f"{name:<18} {r['status']:<13} {r['wall_s'] or 0:6.1f} {cams:11.1e} "
                   f"{'same' if same else 'DIFFER':>11} {normals:11.1e}  {_files(differ)}")
-        # the same command twice: what a separate run repeats byte for byte, for reference
-        name = rows[0][0]
-        run([sys.executable, "-m", "turntable", "reconstruct", str(folders[0] / "images"), *TARGET,
-             "--out", str(work / "again" / name), "--quiet", *extra], work / "again.log")
-        cams1, same1, normals1, differ1 = compare(work / "serial" / name, work / "again" / name)
-        print(f"{name}, its serial run repeated: cameras |d| {cams1:.1e}, mesh digest "
-              f"{'same' if same1 else 'DIFFER'}, normals |d| {normals1:.1e}, model files {_files(differ1)}")
+        # the same command again, and on one thread: what a separate run repeats byte for byte, for reference
+        ref = next((i for i, r in enumerate(rows) if r[-1] in (0, 1, 3)), None)  # the first with a model
+        for label, threads in () if ref is None else (("repeated", []), ("with --threads 1", ["--threads", "1"])):
+            name = rows[ref][0]
+            again = work / "again" / label.replace(" ", "_")
+            run([sys.executable, "-m", "turntable", *threads, "reconstruct", str(folders[ref] / "images"), *TARGET,
+                 "--out", str(again), "--quiet", *extra], work / "again.log")
+            cams1, same1, normals1, differ1 = compare(work / "serial" / name, again)
+            identical &= not differ1
+            print(f"{name}, its serial run {label}: cameras |d| {cams1:.1e}, mesh digest "
+                  f"{'same' if same1 else 'DIFFER'}, normals |d| {normals1:.1e}, files {_files(differ1)}")
         ratio = bwall / serial_wall
         print(f"\nsum of serial walls {serial_wall:.1f} s; batch wall {bwall:.1f} s (x{ratio:.2f}; bar <= 0.75: "
               f"{'met' if ratio <= 0.75 else 'NOT met'}); cameras to {worst:.1e}, mesh digests "
               f"{'all the same' if same_mesh else 'DIFFER'}, "
-              f"model files {'byte-identical' if identical else 'not all byte-identical'}")
+              f"files {'all byte-identical' if identical else 'not all byte-identical'} (batch and references)")
         serial_cpu = sum(r[2] for r in rows)
         print(f"serial CPU {serial_cpu:.1f} s = {serial_cpu / len(rows):.1f} s per object; "
               f"peak RSS {max(r[3] for r in rows):.2f} GB")
