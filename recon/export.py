@@ -55,7 +55,7 @@ if TYPE_CHECKING:
     from .texture import TexturedMesh
 
 __all__ = ["export_mesh", "png_bytes", "export_colmap", "export_nerfstudio", "glb_bytes", "srgb_to_linear",
-           "ColmapTracks", "surface_tracks", "sample_surface", "project_photo_px", "MAX_TRACK_POINTS"]
+           "ColmapTracks", "surface_tracks", "sample_surface", "project_photo_px", "MAX_TRACK_POINTS", "lod_stem"]
 
 MM_PER_M = 1000.0
 # glTF material of a scan: vertex colours times white, dielectric, matte.
@@ -78,7 +78,8 @@ def export_mesh(mesh: TableMesh, out_dir: str | os.PathLike, *, stem: str = "mod
     :mod:`recon.texture`), the GLB carries the texture as its material's
     ``baseColorTexture`` (no ``COLOR_0``) and the OBJ names ``<stem>.mtl``,
     whose ``map_Kd`` is ``<stem>_albedo.png``; the PLY keeps ``mesh``
-    (watertight, vertex colours).
+    (watertight, vertex colours). Its levels of detail (``textured.lods``)
+    are ``<stem>_lod1.glb``/``.obj``, ... sharing that texture and material.
 
     Parameters
     ----------
@@ -93,7 +94,8 @@ def export_mesh(mesh: TableMesh, out_dir: str | os.PathLike, *, stem: str = "mod
     Returns
     -------
     dict
-        ``{"glb": path, "ply": path, "obj": path}``, and ``"mtl"``, ``"texture"`` with ``textured``.
+        ``{"glb": path, "ply": path, "obj": path}``, and ``"mtl"``, ``"texture"`` with ``textured``
+        (and ``"glb_lod1"``, ``"obj_lod1"``, ... with its levels of detail).
     """
     V, F, N, C = _mesh_arrays(mesh)
     out = Path(out_dir)
@@ -121,27 +123,37 @@ def png_bytes(rgb: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
+def lod_stem(stem: str, level: int) -> str:
+    """File stem of a level of detail: ``stem`` itself for level 0, ``<stem>_lod<level>`` for coarser ones."""
+    return stem if level == 0 else f"{stem}_lod{level}"
+
+
 def _export_textured(textured: TexturedMesh, out: Path, stem: str) -> dict[str, Path]:
-    """``<stem>.glb`` with the texture embedded, ``<stem>.obj`` + ``.mtl`` + ``<stem>_albedo.png``."""
-    V, F, N, _ = _mesh_arrays(textured.mesh)
-    uv = np.asarray(textured.texcoords, np.float64)
-    if uv.shape != (len(V), 2):
-        raise ValueError(f"texcoords: expected {(len(V), 2)}, got {uv.shape}")
+    """``<stem>.glb`` with the texture embedded, ``<stem>.obj`` + ``.mtl`` + ``<stem>_albedo.png``; each level
+    of detail ``textured.lods[i - 1]`` as ``<stem>_lod<i>.glb`` (the same PNG embedded) and ``.obj`` (naming
+    ``<stem>.mtl``: one material, one texture file for every level)."""
     png = png_bytes(textured.texture_rgb)
-    paths = {"glb": out / f"{stem}.glb", "obj": out / f"{stem}.obj", "mtl": out / f"{stem}.mtl",
-             "texture": out / f"{stem}_albedo.png"}
-    atomic_write_bytes(paths["glb"], glb_bytes(V / MM_PER_M, F, N, texcoords=uv, texture_png=png))
+    paths = {"mtl": out / f"{stem}.mtl", "texture": out / f"{stem}_albedo.png"}
     atomic_write_bytes(paths["texture"], png)
     atomic_write_bytes(paths["mtl"], (f"# turntable: matte, the photo texture (sRGB)\nnewmtl scan\n"
                                       f"Ka 0 0 0\nKd 1 1 1\nKs 0 0 0\nNs 1\nillum 1\nd 1\n"
                                       f"map_Kd {paths['texture'].name}\n").encode())
-    lines = [f"# turntable: metres, +Y up, table frame\nmtllib {paths['mtl'].name}\no model\n",
-             _rows("v", V / MM_PER_M, "{:.7g}"),
-             _rows("vt", np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]), "{:.7g}"),  # OBJ: v up from the bottom row
-             _rows("vn", N, "{:.6g}"), "usemtl scan\n"]
-    f1 = np.asarray(F, np.int64) + 1
-    lines.append("".join(f"f {a}/{a}/{a} {b}/{b}/{b} {c}/{c}/{c}\n" for a, b, c in f1.tolist()))
-    atomic_write_bytes(paths["obj"], "".join(lines).encode())
+    for i, level in enumerate((textured, *textured.lods)):
+        V, F, N, _ = _mesh_arrays(level.mesh)
+        uv = np.asarray(level.texcoords, np.float64)
+        if uv.shape != (len(V), 2):
+            raise ValueError(f"texcoords of level {i}: expected {(len(V), 2)}, got {uv.shape}")
+        name, suffix = lod_stem(stem, i), "" if i == 0 else f"_lod{i}"
+        glb, obj = out / f"{name}.glb", out / f"{name}.obj"
+        atomic_write_bytes(glb, glb_bytes(V / MM_PER_M, F, N, texcoords=uv, texture_png=png))
+        lines = [f"# turntable: metres, +Y up, table frame\nmtllib {paths['mtl'].name}\no {name}\n",
+                 _rows("v", V / MM_PER_M, "{:.7g}"),
+                 _rows("vt", np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]), "{:.7g}"),  # OBJ: v up from the bottom row
+                 _rows("vn", N, "{:.6g}"), "usemtl scan\n"]
+        f1 = np.asarray(F, np.int64) + 1
+        lines.append("".join(f"f {a}/{a}/{a} {b}/{b}/{b} {c}/{c}/{c}\n" for a, b, c in f1.tolist()))
+        atomic_write_bytes(obj, "".join(lines).encode())
+        paths[f"glb{suffix}"], paths[f"obj{suffix}"] = glb, obj
     return paths
 
 

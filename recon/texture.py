@@ -36,10 +36,10 @@ footprint neither reaches past a silhouette nor across an occluding edge. Its
 sample is the photo bilinearly interpolated at ``u`` (``cv2.remap``) in
 *linear light* (IEC sRGB decoding), weighted by
 
-    w = cos⁴ θ · (d₀ / d)² · feather,
+    w = cos θ · (d₀ / d)² · feather,
 
-where ``d = |C - X|`` (pixel footprint), the fourth power of the cosine lets the
-most frontal view dominate (sharp, least glare) and ``feather`` in (0, 1]
+where ``cos θ / d²`` is the area of the photo the surface element covers (every
+photo pixel on it counts once; ``COS_POWER``) and ``feather`` in (0, 1]
 grows with the distance to the nearest silhouette or depth edge in the photo
 (``FEATHER_PX``), so a view fades out before it ends and seams between views
 blend instead of stepping. Before blending, each view's **exposure gain**
@@ -51,6 +51,31 @@ colour; the texture is then stored sRGB-encoded (glTF's base-colour texture is
 sRGB), and the empty texels around the charts are filled outward from the
 chart edges (``DILATE_TEXELS`` rings, then the mean), so bilinear sampling and
 mip-maps never pull in black background.
+
+**Why cos θ, not a higher power** (measured 2026-12-02, ``benchmarks/texture.py``'s
+held-out frames, 50k hull meshes): with ``cos⁴ θ`` the most frontal view dominated,
+and the texture was 0.29 dB *below* the vertex colours' weighted median on the
+synthetic sample. Its exposure gains were 1.00 ± 0.01 (not the cause), and a
+weighted median or rejecting samples far from it did worse (sample 26.1 / 27.1 dB
+against 27.3 for the mean). The cause: a turntable's light turns with the
+camera in the table frame, so a point's shading differs from view to view, and
+a hull surface off the true one projects to slightly different photo points in
+each view; a held-out view is predicted best by the mean over the views, the
+one static colour closest to all of them, and the mean also averages the
+photos' noise. Held-out PSNR / SSIM, cos⁴ → cos¹ → cos⁰: sample 26.63 / 0.920 →
+27.26 / 0.924 → 27.38 / 0.924, squirrel 20.00 / 0.796 → 20.36 / 0.804 → 20.39 /
+0.803; cos¹ (each photo pixel counted once) is kept: the best SSIM on the real
+object and frontal views still count more than grazing, blurred ones.
+
+**Levels of detail** (:func:`texture_mesh` ``lods``, :func:`uv_atlas_levels`):
+coarser meshes (quadric decimation) in the same atlas, sharing the one texture.
+The charts are made on the coarsest level; a finer face joins the chart of the
+closest coarse face, so every chart's projection covers the same region of the
+surface on every level, and the texel at a chart-plane position stands for the
+same surface point on all of them: the coarse levels show the fine texture's
+detail (sample, held out: 50k 27.26 dB, its 10k level 27.26, its 2k level 27.22).
+Texels only a coarser level's faces cover (where it bulges past the finer
+surface) are baked from the closest point of the finest mesh.
 """
 
 from __future__ import annotations
@@ -70,8 +95,8 @@ from .raycast import first_hits, raycasting_scene
 from .silhouettes import worker_threads
 from .types import TableMesh
 
-__all__ = ["TexturedMesh", "uv_atlas", "bake_texture", "texture_mesh", "render_albedo", "srgb_encode",
-           "srgb_decode_lut"]
+__all__ = ["TexturedMesh", "uv_atlas", "uv_atlas_levels", "bake_texture", "texture_mesh", "decimate",
+           "render_albedo", "srgb_encode", "srgb_decode_lut"]
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +112,8 @@ TEXELS_PER_PIXEL = 2.0
 ATLAS_FILL = 0.4
 #: Texels sampled to estimate the per-view exposure gains.
 GAIN_SAMPLES = 40_000
+#: Power of the viewing-angle cosine in a sample's weight (module docstring: why a low power).
+COS_POWER = 1.0
 
 
 @dataclass(frozen=True)
@@ -105,12 +132,16 @@ class TexturedMesh:
         sRGB-encoded albedo.
     source_vertex : (N',) int64
         Index of each vertex in the source mesh.
+    lods : tuple of TexturedMesh
+        Coarser levels of detail (fewer faces, finest first) mapped into the same atlas: each one's
+        ``texture_rgb`` is this one's array, its ``source_vertex`` indexes its own (decimated) mesh.
     """
 
     mesh: TableMesh
     texcoords: np.ndarray
     texture_rgb: np.ndarray
     source_vertex: np.ndarray
+    lods: tuple[TexturedMesh, ...] = ()
 
 
 # --------------------------------------------------------------------------- colour
@@ -154,21 +185,48 @@ def uv_atlas(vertices_table: np.ndarray, faces: np.ndarray, size: int,
     texcoords : (N', 2) float32
         In [0, 1]; ``texcoords * size - 0.5`` is the position in texel-centre coordinates (column, row).
     """
-    V = np.asarray(vertices_table, np.float64)
-    F = np.asarray(faces, np.int64)
-    if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3 or not len(F):
-        raise ValueError(f"expected vertices (N, 3) and faces (M, 3), got {V.shape} and {F.shape}")
-    chart, direction = _charts(V, F)
-    n_charts = int(chart.max()) + 1
-    key = F * n_charts + chart[:, None]  # one atlas vertex per (vertex, chart) it belongs to
-    uniq, inverse = np.unique(key.ravel(), return_inverse=True)
-    src, vchart = uniq // n_charts, uniq % n_charts
+    return uv_atlas_levels([(vertices_table, faces)], size, padding)[0]
+
+
+def uv_atlas_levels(levels: Sequence[tuple[np.ndarray, np.ndarray]], size: int, padding: int = PADDING_TEXELS
+                    ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """One atlas shared by several levels of detail of one surface, finest first (``(vertices_table, faces)``).
+
+    The charts are made on the **coarsest** level (:func:`uv_atlas`'s rule); a face of a finer level joins
+    the chart of the coarsest face closest to its centroid and is projected along that chart's direction.
+    Every chart's box holds all levels' projections, so a texel at a chart-plane position stands for the
+    same surface point on every level (up to the levels' distance along the projection direction): the
+    texture baked on the finest level is the coarser levels' texture too. Returns :func:`uv_atlas`'s
+    triple for each level. With one level it is :func:`uv_atlas`.
+    """
+    lv = [(np.asarray(V, np.float64), np.asarray(F, np.int64)) for V, F in levels]
+    for V, F in lv:
+        if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3 or not len(F):
+            raise ValueError(f"expected vertices (N, 3) and faces (M, 3), got {V.shape} and {F.shape}")
+    Vc, Fc = lv[-1]
+    chart_c, direction = _charts(Vc, Fc)
+    n_charts = int(chart_c.max()) + 1
     chart_dir = np.zeros(n_charts, np.int64)
-    chart_dir[chart] = direction
-    axes = _PLANE_AXES[chart_dir[vchart]]  # (N', 2, 3)
-    xy = np.einsum("nkd,nd->nk", axes, V[src])  # mm in each chart's projection plane
-    uv = _pack(xy, vchart, n_charts, int(size), int(padding))
-    return src.astype(np.int64), inverse.reshape(F.shape).astype(np.int64), uv.astype(np.float32)
+    chart_dir[chart_c] = direction
+    charts = [chart_c]
+    if len(lv) > 1:
+        coarse = raycasting_scene(Vc, Fc)
+        charts = [chart_c[_closest(coarse, V[F].mean(axis=1))[0]] for V, F in lv[:-1]] + charts
+    parts, xys, vcharts = [], [], []
+    for (V, F), chart in zip(lv, charts, strict=True):
+        key = F * n_charts + chart[:, None]  # one atlas vertex per (vertex, chart) it belongs to
+        uniq, inverse = np.unique(key.ravel(), return_inverse=True)
+        src, vchart = uniq // n_charts, uniq % n_charts
+        axes = _PLANE_AXES[chart_dir[vchart]]  # (N', 2, 3)
+        xys.append(np.einsum("nkd,nd->nk", axes, V[src]))  # mm in each chart's projection plane
+        vcharts.append(vchart)
+        parts.append((src.astype(np.int64), inverse.reshape(F.shape).astype(np.int64)))
+    uv = _pack(np.concatenate(xys), np.concatenate(vcharts), n_charts, int(size), int(padding)).astype(np.float32)
+    out, at = [], 0
+    for (src, faces), xy in zip(parts, xys, strict=True):
+        out.append((src, faces, uv[at:at + len(xy)]))
+        at += len(xy)
+    return out
 
 
 #: Projection directions of the charts (±X, ±Y, ±Z, table frame) and an orthonormal basis of each plane.
@@ -219,6 +277,17 @@ def _charts(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     _, comp = connected_components(coo_matrix((np.ones(int(keep.sum())), (fa[keep], fb[keep])), shape=(M, M)),
                                    directed=False)
     return comp.astype(np.int64), label
+
+
+def _closest(scene, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closest face (n,) int64 of a ray-casting scene's mesh to each point, and the barycentrics (n, 3) there."""
+    import open3d as o3d
+
+    q = scene.compute_closest_points(o3d.core.Tensor(np.asarray(pts, np.float32)))  # type: ignore[call-overload]
+    b12 = q["primitive_uvs"].numpy().astype(np.float32)
+    bary = np.clip(np.column_stack([1.0 - b12.sum(axis=1), b12]), 0.0, None)
+    bary /= np.maximum(bary.sum(axis=1, keepdims=True), 1e-12)
+    return q["primitive_ids"].numpy().astype(np.int64), bary
 
 
 def _pack(xy: np.ndarray, vchart: np.ndarray, n_charts: int, size: int, padding: int) -> np.ndarray:
@@ -332,22 +401,47 @@ def texture_mesh(
     *,
     masks: Sequence[np.ndarray] | None = None,
     size: int = 2048,
+    lods: Sequence[int] = (),
     progress: Callable[[int, int], None] | None = None,
 ) -> TexturedMesh:
     """UV atlas (:func:`uv_atlas`) plus baked texture (:func:`bake_texture`) of ``mesh``; see the module docstring.
 
     ``size`` is the largest texture side; the side used is :func:`texture_side` (no more texels than the
-    photos resolve).
+    photos resolve). ``lods``: face counts of coarser levels of detail (quadric decimation of ``mesh``,
+    :func:`decimate`), all in one atlas (:func:`uv_atlas_levels`) sharing the one texture; a count not
+    below the previous level's faces is left out.
     """
     V = np.asarray(mesh.vertices_table, np.float64)
     F = np.asarray(mesh.faces, np.int64)
     size = texture_side(V, F, K, T_cam_table, size)
-    src, faces, uv = uv_atlas(V, F, size)
+    coarse: list[TableMesh] = []
+    for n in sorted({int(n) for n in lods}, reverse=True):
+        if n < len(coarse[-1].faces if coarse else F):
+            coarse.append(decimate(mesh, n))
+    atlas = uv_atlas_levels([(V, F)] + [(m.vertices_table, m.faces) for m in coarse], size)
+    src, faces, uv = atlas[0]
     normals = _vertex_normals(mesh)
     colors = None if mesh.colors_rgb is None else np.asarray(mesh.colors_rgb, np.uint8)[src]
     split = TableMesh(V[src], faces, normals[src], colors)
-    texture = bake_texture(split, uv, images_rgb, K, T_cam_table, masks=masks, size=size, progress=progress)
-    return TexturedMesh(split, uv, texture, src)
+    levels = [(TableMesh(np.asarray(m.vertices_table)[s], f, np.asarray(m.normals_table)[s]), u, s)
+              for m, (s, f, u) in zip(coarse, atlas[1:], strict=True)]
+    texture = bake_texture(split, uv, images_rgb, K, T_cam_table, masks=masks, size=size,
+                           extra_levels=[(m, u) for m, u, _ in levels], progress=progress)
+    return TexturedMesh(split, uv, texture, src, tuple(TexturedMesh(m, u, texture, s) for m, u, s in levels))
+
+
+def decimate(mesh: TableMesh, max_faces: int) -> TableMesh:
+    """A coarser level of detail: quadric decimation (open3d) of ``mesh`` to at most ``max_faces`` faces,
+    degenerate faces dropped, vertex normals recomputed (no colours: the texture colours it)."""
+    import open3d as o3d
+
+    om = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(mesh.vertices_table, np.float64)),
+                                   o3d.utility.Vector3iVector(np.asarray(mesh.faces, np.int32)))
+    om = om.simplify_quadric_decimation(target_number_of_triangles=int(max_faces))
+    tm = trimesh.Trimesh(np.asarray(om.vertices), np.asarray(om.triangles, np.int64), process=True)
+    tm.update_faces(tm.nondegenerate_faces())
+    tm.remove_unreferenced_vertices()
+    return TableMesh(np.asarray(tm.vertices), np.asarray(tm.faces, np.int64), np.asarray(tm.vertex_normals))
 
 
 def texture_side(vertices_table: np.ndarray, faces: np.ndarray, K: np.ndarray,
@@ -386,6 +480,7 @@ def bake_texture(
     size: int = 2048,
     min_cos: float = 0.1,
     tol_mm: float | None = None,
+    extra_levels: Sequence[tuple[TableMesh, np.ndarray]] = (),
     progress: Callable[[int, int], None] | None = None,
 ) -> np.ndarray:
     """The albedo texture of a mesh with texture coordinates, from undistorted photos.
@@ -411,6 +506,9 @@ def bake_texture(
         Smallest cosine of the viewing angle that counts.
     tol_mm : float, optional
         Depth agreement for visibility; default the median edge length.
+    extra_levels : sequence of (TableMesh, (N_l, 2) texcoords)
+        Coarser levels of detail in the same atlas (:func:`uv_atlas_levels`): the texels only their
+        faces cover are baked too, from the points of ``mesh`` closest to them.
     progress : callable(done, total), optional
 
     Returns
@@ -431,8 +529,8 @@ def bake_texture(
     if uv.shape != (len(V), 2):
         raise ValueError(f"texcoords: expected {(len(V), 2)}, got {uv.shape}")
     tol = _median_edge(V, F) if tol_mm is None else float(tol_mm)
-    tex = _texels(mesh, uv, F, int(size))
     scene = raycasting_scene(V, F)
+    tex = _texels(mesh, uv, F, int(size), extra_levels, scene)
     lut = srgb_decode_lut()
     n_views = len(images)
     with ThreadPoolExecutor(max_workers=worker_threads()) as pool:  # numpy, OpenCV, Embree release the GIL
@@ -484,9 +582,32 @@ def _median_edge(V: np.ndarray, F: np.ndarray) -> float:
     return float(np.median(np.linalg.norm(e, axis=2)))
 
 
-def _texels(mesh: TableMesh, uv: np.ndarray, F: np.ndarray, size: int) -> _Texels:
+def _texels(mesh: TableMesh, uv: np.ndarray, F: np.ndarray, size: int,
+            extra_levels: Sequence[tuple[TableMesh, np.ndarray]] = (), scene=None) -> _Texels:
+    """The texels ``mesh``'s charts cover (grown by half the gutter), then those only a coarser level's
+    faces cover (``extra_levels``: mesh, texcoords): each of those stands for the point of ``mesh`` closest
+    to its point on that level, so every texel is a point of the finest surface."""
     face_id = _rasterize(uv, F, size, grow=PADDING_TEXELS // 2)
     flat, f, bary = _texel_barycentrics(uv, F, size, face_id)
+    if extra_levels:
+        V64 = np.asarray(mesh.vertices_table, np.float64)
+        scene = scene if scene is not None else raycasting_scene(V64, F)
+        taken = face_id >= 0
+        more_flat, more_f, more_bary = [flat], [f], [bary]
+        for lod, lod_uv in extra_levels:
+            FL = np.asarray(lod.faces, np.int64)
+            lid = _rasterize(np.asarray(lod_uv, np.float32), FL, size, grow=PADDING_TEXELS // 2)
+            lid[taken] = -1
+            if not (lid >= 0).any():
+                continue
+            taken |= lid >= 0
+            lflat, lf, lbary = _texel_barycentrics(np.asarray(lod_uv, np.float32), FL, size, lid)
+            p = np.einsum("pk,pkd->pd", lbary, np.asarray(lod.vertices_table, np.float64)[FL[lf]])
+            cf, cb = _closest(scene, p)
+            more_flat.append(lflat)
+            more_f.append(cf)
+            more_bary.append(cb)
+        flat, f, bary = np.concatenate(more_flat), np.concatenate(more_f), np.concatenate(more_bary)
     V = np.asarray(mesh.vertices_table, np.float32)
     N = _vertex_normals(mesh).astype(np.float32)
     corners = F[f]
@@ -569,7 +690,7 @@ def _view_samples(tex: _Texels, sel: np.ndarray, image: np.ndarray, maps: _ViewM
     h, w = maps.depth.shape
     crop = image[maps.y0:maps.y0 + h, maps.x0:maps.x0 + w]
     rgb = _remap(lut[crop], mx, my)
-    weight = cos**4 * (1000.0 / d) ** 2 * feather
+    weight = cos**COS_POWER * (1000.0 / d) ** 2 * feather
     return sel[keep], weight.astype(np.float32), rgb.astype(np.float32)
 
 
