@@ -29,6 +29,7 @@ from recon.texture import (
     texture_mesh,
     texture_side,
     uv_atlas,
+    uv_atlas_levels,
 )
 from recon.types import TableMesh
 
@@ -182,6 +183,53 @@ def test_texture_side_follows_the_photos_resolution(box_views):
     assert texture_side(mesh.vertices_table, mesh.faces, _K() * [[4], [4], [1]], Ts, 512) == 512
 
 
+@pytest.fixture(scope="module")
+def baked_lods(box_views):
+    mesh, images, masks, Ts = box_views
+    return texture_mesh(mesh, images, _K(), Ts, masks=masks, size=512, lods=(200, 60))
+
+
+def test_lods_share_the_one_texture_and_keep_its_detail(baked_lods):
+    """Every level of detail maps into the one atlas: its texels are the true albedo at its own points."""
+    faces = [len(lv.mesh.faces) for lv in baked_lods.lods]
+    assert len(faces) == 2 and faces[1] <= 60 and faces[1] < faces[0] <= 200, faces
+    for i, level in enumerate((baked_lods, *baked_lods.lods)):
+        assert level.texture_rgb is baked_lods.texture_rgb
+        assert level.texcoords.min() >= 0.0 and level.texcoords.max() <= 1.0
+        err = _texel_errors(level, np.random.default_rng(2 + i))
+        assert np.median(err) < ALBEDO_TOL_DN, (i, np.median(err))
+        assert np.percentile(err, 90) < ALBEDO_P90_TOL_DN, (i, np.percentile(err, 90))
+
+
+def test_lod_renders_match_a_view(box_views, baked_lods):
+    mesh, images, masks, Ts = box_views
+    for level in baked_lods.lods:
+        img, hit = render_albedo(level.mesh, _K(), Ts[4], SIZE, texcoords=level.texcoords,
+                                 texture_rgb=level.texture_rgb)
+        inner = hit & (masks[4] > 0)
+        diff = np.abs(img[inner].astype(float) - images[4][inner].astype(float))
+        assert inner.sum() > 0.5 * (masks[4] > 0).sum() and np.median(diff) < ALBEDO_TOL_DN, np.median(diff)
+
+
+def test_atlas_levels_put_every_level_in_one_chart_set(box_views):
+    mesh = box_views[0]
+    from recon.texture import decimate
+
+    coarse = decimate(mesh, 48)
+    (src0, f0, uv0), (src1, f1, uv1) = uv_atlas_levels([(mesh.vertices_table, mesh.faces),
+                                                       (coarse.vertices_table, coarse.faces)], 512)
+    np.testing.assert_array_equal(src0[f0], mesh.faces)
+    np.testing.assert_array_equal(src1[f1], coarse.faces)
+    # the same table point has the same texture coordinates on both levels (the box's corners are on both)
+    corners = np.array([[-30.0, 0.0, -30.0], [30.0, 60.0, 30.0], [30.0, 0.0, 30.0]])
+    for c in corners:
+        a = np.flatnonzero(np.linalg.norm(mesh.vertices_table[src0] - c, axis=1) < 1e-6)
+        b = np.flatnonzero(np.linalg.norm(coarse.vertices_table[src1] - c, axis=1) < 1e-6)
+        assert len(a) and len(b)
+        ua = {tuple(np.round(u, 5)) for u in uv0[a]}
+        assert all(tuple(np.round(u, 5)) in ua for u in uv1[b]), (ua, uv1[b])
+
+
 # --------------------------------------------------------------------------- files
 
 
@@ -212,6 +260,20 @@ def test_glb_round_trip_keeps_uvs_and_texture(baked, tmp_path):
     assert merged.is_watertight  # the seams split vertices, not the surface
 
 
+def test_lod_files_share_the_texture_and_material(baked_lods, tmp_path):
+    paths = export_mesh(baked_lods.mesh, tmp_path, textured=baked_lods)
+    assert {"glb_lod1", "obj_lod1", "glb_lod2", "obj_lod2"} <= set(paths)
+    assert paths["glb_lod2"].name == "model_lod2.glb" and paths["obj_lod1"].name == "model_lod1.obj"
+    assert "mtllib model.mtl" in paths["obj_lod1"].read_text()  # one material, one PNG for all levels
+    for i, level in enumerate(baked_lods.lods, start=1):
+        loaded = trimesh.load(paths[f"glb_lod{i}"], force="mesh", process=False)
+        assert len(loaded.faces) == len(level.mesh.faces)
+        np.testing.assert_array_equal(np.asarray(loaded.visual.material.baseColorTexture.convert("RGB")),
+                                      baked_lods.texture_rgb)
+        obj = trimesh.load(paths[f"obj_lod{i}"], force="mesh", process=False)
+        np.testing.assert_allclose(obj.visual.uv[:, 1], 1.0 - level.texcoords[:, 1], atol=1e-6)
+
+
 def test_obj_mtl_png_load_with_the_texture(baked, tmp_path):
     paths = export_mesh(baked.mesh, tmp_path, textured=baked)
     assert {"obj", "mtl", "texture", "ply"} <= set(paths)
@@ -233,15 +295,16 @@ def _validator_env():
     return node if probe.returncode == 0 else None
 
 
-def test_textured_glb_passes_the_khronos_validator(baked, tmp_path):
+def test_textured_glb_passes_the_khronos_validator(baked_lods, tmp_path):
     node = _validator_env()
     if node is None:
         pytest.skip("node or the npm package gltf-validator not found (NODE_PATH)")
-    paths = export_mesh(baked.mesh, tmp_path, textured=baked)
-    res = subprocess.run([node, str(REPO / "benchmarks" / "gltf_validate.mjs"), str(paths["glb"])],
-                         capture_output=True, text=True, timeout=120)
-    report = json.loads(res.stdout.splitlines()[-1])
-    assert res.returncode == 0 and report["errors"] == 0 and report["warnings"] == 0, report
+    paths = export_mesh(baked_lods.mesh, tmp_path, textured=baked_lods)
+    for key in ("glb", "glb_lod1", "glb_lod2"):
+        res = subprocess.run([node, str(REPO / "benchmarks" / "gltf_validate.mjs"), str(paths[key])],
+                             capture_output=True, text=True, timeout=120)
+        report = json.loads(res.stdout.splitlines()[-1])
+        assert res.returncode == 0 and report["errors"] == 0 and report["warnings"] == 0, (key, report)
 
 
 # --------------------------------------------------------------------------- the command
@@ -286,6 +349,59 @@ def test_no_texture_keeps_the_vertex_coloured_model(small_scene, tmp_path):
     doc = _glb_json((out / "model.glb").read_bytes())
     assert "COLOR_0" in doc["meshes"][0]["primitives"][0]["attributes"]
     assert "images" not in doc and "baseColorTexture" not in doc["materials"][0]["pbrMetallicRoughness"]
+
+
+def test_reconstruct_lods_summary_and_cached_texture(small_scene, tmp_path, capsys):
+    """--lods writes model_lod1/2 sharing model_albedo.png; summary.json and the screen name the texture and
+    the levels; a re-run with the same inputs reuses the cached bake and writes the same files."""
+    out = tmp_path / "scan"
+    args = ["--texture-size", "512", "--max-faces", "3000", "--lods", "1000,300"]
+    assert _reconstruct(small_scene, out, *args) == 0
+    first_out = capsys.readouterr().out
+    for name in ("model_lod1.glb", "model_lod1.obj", "model_lod2.glb", "model_lod2.obj"):
+        assert (out / name).is_file(), name
+    summary = json.loads((out / "summary.json").read_text())
+    tex = summary["texture"]
+    assert tex["size_px"] == 512 and tex["file"] == "model_albedo.png"
+    assert [lv["file"] for lv in tex["levels"]] == ["model.glb", "model_lod1.glb", "model_lod2.glb"]
+    faces = [lv["faces"] for lv in tex["levels"]]
+    assert faces[0] == summary["mesh"]["faces"] and faces[2] <= 300 and faces[2] < faces[1] <= 1000
+    assert "texture         512 x 512 px, model_albedo.png" in first_out
+    assert f"LOD 2           model_lod2.glb: {faces[2]} faces" in first_out
+    assert summary["files"]["glb_lod2"].endswith("model_lod2.glb")
+    before = {p.name: p.read_bytes() for p in out.glob("model*")}
+    from turntable.cli import main
+
+    again = ["reconstruct", str(small_scene / "images"), "--cameras", str(small_scene / "cameras_gt.json"),
+             "--masks", str(small_scene / "masks"), "--resolution", "32", "--no-fusion", "--out", str(out), *args]
+    assert main(again) == 0
+    captured = capsys.readouterr()
+    assert "texture: reused" in captured.err
+    assert "texture" not in json.loads((out / "summary.json").read_text())["time_s"]  # not baked again
+    assert {p.name: p.read_bytes() for p in out.glob("model*")} == before
+
+
+def test_no_texture_summary_says_vertex_colours(small_scene, tmp_path, capsys):
+    out = tmp_path / "scan"
+    from turntable.cli import main
+
+    assert main(["reconstruct", str(small_scene / "images"), "--cameras", str(small_scene / "cameras_gt.json"),
+                 "--masks", str(small_scene / "masks"), "--resolution", "32", "--no-fusion", "--no-texture",
+                 "--out", str(out)]) == 0
+    assert json.loads((out / "summary.json").read_text())["texture"] is None
+    assert "texture         none (--no-texture)" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("value, message", [("60000", "fewer than --max-faces 50000"), ("abc", "face counts"),
+                                            ("50", "at least 100")])
+def test_lods_are_checked(small_scene, tmp_path, capsys, value, message):
+    assert _reconstruct(small_scene, tmp_path / "scan", "--lods", value) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_lods_need_the_texture(small_scene, tmp_path, capsys):
+    assert _reconstruct(small_scene, tmp_path / "scan", "--lods", "2000", "--no-texture") == 2
+    assert "--lods needs the texture" in capsys.readouterr().err
 
 
 def test_texture_size_must_be_a_power_of_two(small_scene, tmp_path, capsys):

@@ -179,11 +179,11 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
     with progress.stage("colour"):
         mesh = color_vertices(mesh, images_rgb, K, Ts, masks=masks)
     textured = None
-    if opts.texture:
-        from recon.texture import texture_mesh
+    if opts.texture:  # the UV atlas and photo texture (and --lods), cached: stages/texture.py
+        from .stages.texture import texture_key, textured_model
 
-        with progress.stage("texture"):
-            textured = texture_mesh(mesh, images_rgb, K, Ts, masks=masks, size=opts.texture_size)
+        textured = textured_model(mesh, images_rgb, K, Ts, masks, opts, cache,
+                                  texture_key(sil_key, names, mesh, opts), progress)
 
     from recon.meshing import mesh_stats
 
@@ -201,7 +201,7 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
     times = {**progress.times_s, "total": time.perf_counter() - t0}
     summary = summary_stage.summarise(out=out, seq=seq, names=names, skipped=skipped, mesh=mesh, stats=stats,
                                       fusion_note=fusion_note, carved=carved, failed=failed, exif=exif,
-                                      work_size=ws.report(), times_s=times, files=files)
+                                      work_size=ws.report(), times_s=times, files=files, textured=textured)
     atomic_write_text(staging / "summary.json", json.dumps(summary.to_json(), indent=1) + "\n")
     exit_code = EXIT_CHECK_FAILED if failed else EXIT_UNREADABLE if unreadable else EXIT_OK
     return ReconstructResult(out=out, files=files, frames_used=names, frames_skipped=skipped,

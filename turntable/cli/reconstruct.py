@@ -37,6 +37,10 @@ def add_job_arguments(parser) -> None:
     parser.add_argument("--max-faces", type=int, default=50_000, metavar="N", help="decimate to at most N faces")
     parser.add_argument("--texture-size", type=int, default=2048, metavar="N",
                         help="side of the baked photo texture, texels (power of two, 256-8192)")
+    parser.add_argument("--lods", metavar="N,N,...", default="none",
+                        help="coarser levels of detail, as face counts below --max-faces (e.g. 10000,2000): "
+                             "OUT/model_lod1.glb/.obj, model_lod2... in the same atlas as model.glb, sharing "
+                             "model_albedo.png (default: none)")
     parser.add_argument("--no-texture", action="store_true",
                         help="vertex colours only: no UV atlas, no texture (the model before 2026-12)")
     parser.add_argument("--every", type=int, default=1, metavar="N",
@@ -70,6 +74,7 @@ def options_from_args(args) -> ReconstructOptions:
     texture_size = getattr(args, "texture_size", 2048)
     if texture_size not in {2**k for k in range(8, 14)}:
         raise UserError(f"--texture-size must be a power of two from 256 to 8192, got {texture_size}")
+    lods = parse_lods(getattr(args, "lods", None), args.max_faces, texture=not getattr(args, "no_texture", False))
     # fail before the long stages, not after them
     work_size = parse_work_size(getattr(args, "work_size", None))
     if args.step_deg is not None and not (math.isfinite(args.step_deg) and args.step_deg != 0):
@@ -97,7 +102,27 @@ def options_from_args(args) -> ReconstructOptions:
         spawn=args.spawn, export_colmap=args.export_colmap, export_nerfstudio=args.export_nerfstudio,
         copy_images=args.copy_images,
         max_rejections=args.max_rejections, work_size=work_size,
-        texture=not getattr(args, "no_texture", False), texture_size=texture_size)
+        texture=not getattr(args, "no_texture", False), texture_size=texture_size, lods=lods)
+
+
+def parse_lods(value, max_faces: int, texture: bool = True) -> tuple[int, ...]:
+    """``--lods``: 'none' (or empty) or comma-separated face counts, each at least 100 and below
+    ``max_faces``, returned largest first without repeats."""
+    text = "" if value is None else str(value).strip().lower()
+    if text in ("", "none", "0"):
+        return ()
+    try:
+        counts = [int(v) for v in text.replace(" ", "").split(",") if v]
+    except ValueError:
+        raise UserError(f"--lods must be 'none' or face counts separated by commas (e.g. 10000,2000), "
+                        f"got {value!r}") from None
+    bad = [n for n in counts if n < 100 or n >= max_faces]
+    if bad:
+        raise UserError(f"--lods: every level needs at least 100 faces and fewer than --max-faces {max_faces}, "
+                        f"got {', '.join(map(str, bad))}")
+    if not texture:
+        raise UserError("--lods needs the texture: the levels share it (leave out --no-texture)")
+    return tuple(sorted(set(counts), reverse=True))
 
 
 def print_summary(res, stream=None) -> None:

@@ -31,6 +31,7 @@ class ReconstructOptions:
     work_size: int | None = None  # long side of the work images, pixels; 0: full size; None: the default policy
     texture: bool = True  # a UV atlas and a baked photo texture (False: vertex colours only)
     texture_size: int = 2048  # texture side, texels
+    lods: tuple[int, ...] = ()  # face counts of coarser levels of detail sharing the texture (model_lod1, ...)
 
 
 MIN_VIEWS = 3

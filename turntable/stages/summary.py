@@ -42,7 +42,8 @@ class ReconstructSummary:
     ``silhouettes`` the frames ``rejected`` and kept ``conservative`` with their reasons,
     ``exif_focal`` the photos' EXIF focal length against the calibrated one (or None),
     ``work_size`` the size the stages after calibration ran at, ``time_s`` each stage's wall time
-    and the ``total``, ``files`` what OUT holds (paths as published).
+    and the ``total``, ``files`` what OUT holds (paths as published), ``texture`` the photo texture's
+    side and file and the textured models, finest first (file, faces, vertices; None: ``--no-texture``).
     """
 
     out: str
@@ -63,6 +64,7 @@ class ReconstructSummary:
     failed_checks: list[str] = field(default_factory=list)
     exif_focal: dict | None = None
     work_size: dict | None = None
+    texture: dict | None = None
 
     def to_json(self) -> dict:
         """The content of ``summary.json``: every field but ``out``, in field order (strict JSON: no NaN,
@@ -82,7 +84,8 @@ class ReconstructSummary:
                    fusion=str(d.get("fusion", "")), warnings=list(d.get("warnings", [])),
                    working_volume=d.get("working_volume") or {}, silhouettes=d.get("silhouettes") or {},
                    failed_checks=list(d.get("failed_checks", [])), exif_focal=d.get("exif_focal"),
-                   work_size=d.get("work_size"), time_s=dict(d.get("time_s", {})), files=dict(d.get("files", {})))
+                   work_size=d.get("work_size"), time_s=dict(d.get("time_s", {})), files=dict(d.get("files", {})),
+                   texture=d.get("texture"))
 
     def lines(self) -> list[str]:
         """The summary as ``turntable reconstruct`` prints it, one line each."""
@@ -111,6 +114,13 @@ class ReconstructSummary:
         out.append(f"  mesh            {m.vertices} vertices, {m.faces} faces, "
                    f"{'watertight' if m.watertight else 'NOT watertight'}, {m.pieces} piece(s), "
                    f"{m.volume_cm3:.1f} cm³, {ext} mm")
+        t = self.texture
+        if t:
+            out.append(f"  texture         {t['size_px']} x {t['size_px']} px, {t['file']}")
+            out += [f"  {'model' if i == 0 else f'LOD {i}':<15} {lv['file']}: {lv['faces']} faces, "
+                    f"{lv['vertices']} vertices (seams split)" for i, lv in enumerate(t["levels"])]
+        else:
+            out.append("  texture         none (--no-texture): vertex colours")
         v = self.working_volume
         if v:
             out.append(f"  working volume  radius {v['radius_mm']:.0f} mm, height {v['height_mm']:.0f} mm "
@@ -128,8 +138,9 @@ class ReconstructSummary:
 
 
 def summarise(*, out, seq, names, skipped, mesh, stats, fusion_note, carved, failed, exif, work_size, times_s,
-              files) -> ReconstructSummary:
-    """The summary of a finished run, from what the stages returned."""
+              files, textured=None) -> ReconstructSummary:
+    """The summary of a finished run, from what the stages returned (``textured``: the
+    :class:`recon.texture.TexturedMesh` exported, None without a texture)."""
     from ..frames import frame_name
 
     diagnostics = seq.diagnostics
@@ -151,4 +162,14 @@ def summarise(*, out, seq, names, skipped, mesh, stats, fusion_note, carved, fai
         failed_checks=list(failed), exif_focal=exif, work_size=work_size,
         time_s={k: round(v, 2) for k, v in times_s.items()},
         files={k: frame_name(str(v)) for k, v in files.items()},  # strict JSON whatever the path
+        texture=None if textured is None else texture_summary(textured),
     )
+
+
+def texture_summary(textured) -> dict:
+    """The texture's side and file, and each textured model (``model.glb``, ``model_lod1.glb``, ...)."""
+    from recon.export import lod_stem
+
+    levels = [{"file": f"{lod_stem('model', i)}.glb", "faces": int(len(lv.mesh.faces)),
+               "vertices": int(len(lv.mesh.vertices_table))} for i, lv in enumerate((textured, *textured.lods))]
+    return {"size_px": int(textured.texture_rgb.shape[0]), "file": "model_albedo.png", "levels": levels}
