@@ -70,7 +70,9 @@ root layer first, nothing outside the package); stage up axis Y, metres per
 unit 1; the mesh's material: a UsdPreviewSurface whose diffuseColor is fed by
 a UsdUVTexture reading an sRGB PNG inside the package through a
 UsdPrimvarReader_float2 of the mesh's ``st``, the same texture as the GLB's;
-the mesh's bounds equal to the GLB's (1 mm).
+the surface: triangles wound outward (positive signed volume; AR Quick Look
+culls back faces), the GLB's points and ``st`` = the GLB's (u, 1 - v), so the
+texture sits where the GLB puts it; the mesh's bounds equal to the GLB's (1 mm).
 
 three.js: ``--three DIR`` (its package folder), else ``$TURNTABLE_THREE``, else
 ``three`` under a ``$NODE_PATH`` folder, else
@@ -715,11 +717,21 @@ def usdchecker_rows(name: str, usdz: Path, legacy_python: str | None = None) -> 
     return rows
 
 
-def usdz_rows(name: str, usdz: Path, albedo: Albedo | None, glb_bounds: np.ndarray | None,
-              legacy_python: str | None = None) -> list[Row]:
+def usdz_rows(name: str, usdz: Path, glb: bytes | None = None, legacy_python: str | None = None) -> list[Row]:
+    """The USDZ checks; with the GLB of the same reconstruction, also its texture, UVs and bounds against that."""
     if importlib.util.find_spec("pxr") is None:
         return [Row(name, "usd-core", "not installed (pip install usd-core): USDZ not checked", None)]
     from pxr import Usd, UsdGeom
+
+    albedo, glb_bounds, glb_mesh = None, None, None
+    if glb is not None:
+        gltf, binary = read_glb(glb)
+        attributes = gltf["meshes"][0]["primitives"][0]["attributes"]
+        acc = gltf["accessors"][attributes["POSITION"]]
+        glb_bounds = np.array([acc["min"], acc["max"]], np.float64)
+        albedo = glb_albedo(gltf, binary)
+        uv = _accessor(gltf, binary, attributes["TEXCOORD_0"]) if "TEXCOORD_0" in attributes else None
+        glb_mesh = (_accessor(gltf, binary, attributes["POSITION"]), uv)
 
     rows = usdchecker_rows(name, usdz, legacy_python)
     stage = Usd.Stage.Open(str(usdz))
@@ -729,6 +741,8 @@ def usdz_rows(name: str, usdz: Path, albedo: Albedo | None, glb_bounds: np.ndarr
     rows.append(Row(name, "metres per unit", f"{mpu:g}", abs(mpu - 1.0) < 1e-9))
     meshes = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
     rows.append(Row(name, "texture binding", *_texture_binding(stage, meshes, usdz, albedo)))
+    if len(meshes) == 1:
+        rows.append(Row(name, "surface", *_usd_surface(UsdGeom.Mesh(meshes[0]), glb_mesh)))
     cache = UsdGeom.BBoxCache(Usd.TimeCode.Default(), [UsdGeom.Tokens.default_])
     rng = cache.ComputeWorldBound(stage.GetPseudoRoot()).ComputeAlignedRange()
     lo, hi = np.array(rng.GetMin()), np.array(rng.GetMax())
@@ -739,6 +753,35 @@ def usdz_rows(name: str, usdz: Path, albedo: Albedo | None, glb_bounds: np.ndarr
     else:
         rows.append(Row(name, "bounds", value, None))
     return rows
+
+
+def _usd_surface(mesh, glb_mesh: tuple[np.ndarray, np.ndarray | None] | None) -> tuple[str, bool]:
+    """Faces wound outward (positive signed volume: AR Quick Look culls back faces); st = the GLB's (u, 1 - v)."""
+    from pxr import UsdGeom
+
+    pts = np.asarray(mesh.GetPointsAttr().Get(), np.float64)
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get())
+    if len(counts) == 0 or np.any(counts != 3):
+        return "not a triangle mesh", False
+    tri = pts[np.asarray(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)]
+    volume = float(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0)
+    if mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
+        volume = -volume
+    problems = [] if volume > 0 else ["faces wound inward"]
+    value = f"{len(tri)} triangles, signed volume {1e6 * volume:.1f} cm3"
+    if glb_mesh is not None:
+        positions, uv = glb_mesh
+        st = UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st")
+        st_v = np.asarray(st.Get(), np.float64) if st and st.HasValue() else None
+        if len(positions) != len(pts) or uv is None or st_v is None or len(st_v) != len(uv):
+            value += "; vertices or UVs not one to one with the GLB's: st not compared"
+        else:
+            d_pos = float(np.abs(positions - pts).max())
+            d_st = float(np.abs(st_v - np.column_stack([uv[:, 0], 1.0 - uv[:, 1]])).max())
+            value += f"; vs GLB: points {1000 * d_pos:.3f} mm, st vs (u, 1 - v) {d_st:.1e}"
+            if d_pos > 1e-6 or d_st > 1e-5:
+                problems.append("not the GLB's points/UVs")
+    return value + ("; " + "; ".join(problems) if problems else ""), not problems
 
 
 def _texture_binding(stage, meshes: list, usdz: Path, albedo: Albedo | None) -> tuple[str, bool]:
@@ -888,14 +931,7 @@ def main(argv: list[str] | None = None) -> int:
                 negatives_ok &= bool(failed)
                 rows.append(Row(name, "must fail", "fails: " + (", ".join(failed) or "nothing"), bool(failed)))
     if usdz is not None:
-        bounds = None
-        albedo = None
-        if gltf is not None:
-            prim = gltf["meshes"][0]["primitives"][0]
-            acc = gltf["accessors"][prim["attributes"]["POSITION"]]
-            bounds = np.array([acc["min"], acc["max"]], np.float64)
-            albedo = glb_albedo(gltf, binary)
-        rows += usdz_rows("model.usdz", usdz, albedo, bounds, args.usdchecker_python)
+        rows += usdz_rows("model.usdz", usdz, glb_data, args.usdchecker_python)
     print_table(rows)
     if missing:
         print(f"\nviewer_check: GLB skipped: {missing}")

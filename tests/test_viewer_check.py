@@ -6,11 +6,13 @@ renderer's procedural texture, 8 frames 320x240, true cameras and masks,
 at 480x360. The GLB checks must pass on it and fail on each broken copy
 (upside down, texture removed, texture black, out of frame, texture flipped on
 the surface: only the comparison with model.ply's photo colours can see that);
-the USDZ checks must pass on it and fail on a copy with Z up in centimetres and
-on one whose diffuseColor reads no texture. The GLB part skips without
-Chromium or three.js (``benchmarks/viewer_check.py --install-three`` installs
-it with npm into ~/.cache/turntable-viewer; nothing in ``make test`` needs npm);
-the USDZ part skips without usd-core.
+the USDZ checks must pass on it and fail on a copy with Z up in centimetres,
+one whose diffuseColor reads no texture, one with a prim type AR Quick Look
+does not draw, one wound inside out and one whose st is not the GLB's
+(u, 1 - v). The GLB part skips without Chromium or three.js
+(``benchmarks/viewer_check.py --install-three`` installs it with npm into
+~/.cache/turntable-viewer; nothing in ``make test`` needs npm); the USDZ
+part skips without usd-core.
 """
 
 import importlib.util
@@ -19,7 +21,6 @@ import sys
 import zipfile
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from turntable.cli import main
@@ -106,14 +107,12 @@ def test_usdz_checks_pass_and_broken_copies_fail(recon, tmp_path):
     pytest.importorskip("pxr", reason="usd-core not installed (pip install usd-core, the extra turntable[usd])")
     from pxr import UsdGeom, UsdShade
 
-    gltf, binary = vc.read_glb((recon / "model.glb").read_bytes())
-    albedo = vc.glb_albedo(gltf, binary)
-    acc = gltf["accessors"][gltf["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]
-    bounds = np.array([acc["min"], acc["max"]])
-    rows = vc.usdz_rows("usdz", recon / "model.usdz", albedo, bounds)
+    glb = (recon / "model.glb").read_bytes()
+    rows = vc.usdz_rows("usdz", recon / "model.usdz", glb)
     assert [r.check for r in rows if not r.ok] == []
-    assert {"usd validators", "ARKit rules", "up axis", "metres per unit", "texture binding", "bounds"} <= \
-        {r.check for r in rows}
+    assert {"usd validators", "ARKit rules", "up axis", "metres per unit", "texture binding", "surface",
+            "bounds"} <= {r.check for r in rows}
+    assert "st vs (u, 1 - v)" in next(r.value for r in rows if r.check == "surface")  # compared, not skipped
 
     def z_up_cm(stage):
         UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
@@ -124,16 +123,27 @@ def test_usdz_checks_pass_and_broken_copies_fail(recon, tmp_path):
                        if p.GetTypeName() == "Shader" and UsdShade.Shader(p).GetIdAttr().Get() == "UsdPreviewSurface")
         surface.GetInput("diffuseColor").DisconnectSource()
 
-    rows = vc.usdz_rows("z", _repackaged(recon / "model.usdz", tmp_path / "z", z_up_cm), albedo, bounds)
-    assert {"up axis", "metres per unit"} <= {r.check for r in rows if r.ok is False}
-    rows = vc.usdz_rows("t", _repackaged(recon / "model.usdz", tmp_path / "t", no_texture), albedo, bounds)
-    assert {r.check for r in rows if r.ok is False} == {"texture binding"}
+    def failed(edit, folder: str) -> set[str]:
+        rows = vc.usdz_rows(folder, _repackaged(recon / "model.usdz", tmp_path / folder, edit), glb)
+        return {r.check for r in rows if r.ok is False}
 
     def curves(stage):  # a prim type AR Quick Look does not draw
         UsdGeom.BasisCurves.Define(stage, "/model/hair")
 
-    rows = vc.usdz_rows("c", _repackaged(recon / "model.usdz", tmp_path / "c", curves), albedo, bounds)
-    assert {r.check for r in rows if r.ok is False} == {"ARKit rules"}
+    def inside_out(stage):
+        mesh = next(UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh))
+        mesh.GetOrientationAttr().Set(UsdGeom.Tokens.leftHanded)
+
+    def t_not_flipped(stage):  # st = (u, v): the texture upside down on the surface in USD
+        mesh = next(UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh))
+        st = UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st")
+        st.Set([(s, 1.0 - t) for s, t in st.Get()])
+
+    assert {"up axis", "metres per unit"} <= failed(z_up_cm, "z")
+    assert failed(no_texture, "t") == {"texture binding"}
+    assert failed(curves, "c") == {"ARKit rules"}
+    assert failed(inside_out, "o") == {"surface"}
+    assert failed(t_not_flipped, "f") == {"surface"}
 
 
 def test_bad_input_is_a_clear_error(tmp_path, capsys):
