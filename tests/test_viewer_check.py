@@ -51,7 +51,9 @@ def recon(tmp_path_factory) -> Path:
     return out
 
 
-def _renderer_or_skip() -> Path:
+@pytest.fixture(scope="module")  # module scope, as recon's, so that it is set up (and skips) first
+def three() -> Path:
+    """three.js's folder; skips (before the reconstruction is made) without it or Chromium."""
     if not Path(vc.CHROMIUM).exists():
         pytest.skip(f"{vc.CHROMIUM} not found (apt-get install chromium)")
     three = vc.find_three()
@@ -66,8 +68,7 @@ def _failed(rows, model: str) -> set[str]:
     return {r.check for r in rows if r.model == model and r.ok is False}
 
 
-def test_glb_passes_in_three_js_and_broken_copies_fail(recon, tmp_path):
-    three = _renderer_or_skip()
+def test_glb_passes_in_three_js_and_broken_copies_fail(three, recon, tmp_path):
     glb = (recon / "model.glb").read_bytes()
     models = {"model": glb, **vc.negative_models(glb)}
     reference = vc.photo_reference(recon / "model.glb")
