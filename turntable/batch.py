@@ -677,7 +677,8 @@ def overview_html(rows: list[dict], counts: dict) -> str:
                                        f"{r['volume_cm3']:.1f} cm³" if r.get("volume_cm3") is not None else "",
                                        f"{r['wall_s']:.1f} s" if r.get("wall_s") is not None else "") if x)
         kind = _CARD.get(r["status"], "")
-        cards.append(f'<div class="card {kind}" id="{e(r["object"])}"><a href="{e(r["output"])}/">{img}</a>'
+        link = f'<a href="{e(r["output"])}/">{img}</a>' if r.get("thumbnail") else img  # no model: nothing to open
+        cards.append(f'<div class="card {kind}" id="{e(r["object"])}">{link}'
                      f'<h2>{e(r["object"])}</h2>'
                      f'<p class="st" style="color:{_COLOURS.get(r["status"], "#000")}">{e(r["status"])}'
                      f'{" (resumed)" if r.get("resumed") else ""}</p><p>{e(facts)}</p>'

@@ -52,8 +52,8 @@ _ADDRESS = re.compile(r"^(auto|ray://[^\s:/]+:\d+|[^\s:/]+:\d+)$")
 
 def _check(args) -> None:
     if (args.root is None) == (args.manifest is None):
-        raise UserError("give ROOT (one folder or video per object) or --manifest FILE (the jobs listed), "
-                        + ("not both" if args.root else "one of them"))
+        raise UserError("give ROOT (one folder or video per object) or --manifest FILE (the jobs listed)"
+                        + (", not both" if args.root else ""))
     if args.cpus_per_job < 1:
         raise UserError(f"--cpus-per-job must be 1 or more, got {args.cpus_per_job}")
     if args.retries < 0:
