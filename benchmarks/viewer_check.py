@@ -292,7 +292,9 @@ def install_three() -> Path | None:
     return find_three()
 
 
+@functools.lru_cache(maxsize=1)
 def _web_view():
+    """benchmarks/web_view.py, for its Chromium (headless, DevTools over a pipe, its own process group)."""
     spec = importlib.util.spec_from_file_location("web_view", HERE / "web_view.py")
     module = importlib.util.module_from_spec(spec)
     assert spec.loader is not None
@@ -304,7 +306,7 @@ class _Handler(http.server.SimpleHTTPRequestHandler):
     """The page, three.js (read-only, under /three/) and the models (/models/NAME.glb); nothing else."""
 
     def __init__(self, *args, three: Path, models: dict[str, bytes], **kw):
-        self.three, self.models = three, models
+        self.models = models
         super().__init__(*args, directory=str(three), **kw)
 
     def log_message(self, *args) -> None:
@@ -368,13 +370,16 @@ class Views:
 
 
 def render(browser, url: str, name: str, azimuths: tuple[int, ...] = AZIMUTHS_DEG, timeout: float = 120.0) -> Views:
-    browser.send("Page.navigate", session=True, url=f"{url}?model={name}")
+    """Load model ``name`` in the page and draw every pass from each azimuth."""
+    query = f"?model={name}&t={time.monotonic_ns()}"  # until the new page answers, window.* is the last one
+    browser.send("Page.navigate", session=True, url=url + query)
     t0 = time.monotonic()
     state = "loading"
     while time.monotonic() - t0 < timeout:
         time.sleep(0.3)
         try:
-            state = _evaluate(browser, "window.viewerState") or "loading"
+            state = _evaluate(browser, f"location.search === {json.dumps(query)} ? (window.viewerState || 'loading')"
+                              " : 'loading'")
         except RuntimeError:
             continue
         if state != "loading":
@@ -399,11 +404,6 @@ def render(browser, url: str, name: str, azimuths: tuple[int, ...] = AZIMUTHS_DE
         views.u[az], views.v[az], views.height[az] = decode["u"], decode["v"], decode["y"]
         views.local[az] = lo + codes["p"] / 255.0 * (hi - lo)
     return views
-
-
-@functools.lru_cache(maxsize=1)
-def _web_view_mod():
-    return _web_view()
 
 
 # ---------------------------------------------------------------- the checks
@@ -547,6 +547,38 @@ def _detail_row(name: str, check: str, what: str, rs: list, kinds: list) -> Row:
                f"{len(r)} of {len(rs)} views)".replace("  ", " "), min(r) >= MIN_DETAIL_R)
 
 
+def _colour_rows(name: str, ms: dict[int, dict], reference: Reference | None) -> list[Row]:
+    """colour, texture detail and photo colours, from every view's measures."""
+    rows: list[Row] = []
+
+    def each(key: str) -> list:
+        return [m.get(key) for m in ms.values()]
+
+    chroma = each("chroma")
+    if None in chroma:
+        rows.append(Row(name, "colour", "no measurable object pixels", False))
+    else:
+        worst = int(np.argmax(chroma))
+        shot, want = (np.clip(ms[list(ms)[worst]][k], 0, 1) ** (1 / 2.2) * 255 for k in ("rgb_shot", "rgb_want"))
+        spec = _span(each("specular"), ".3f")
+        rows.append(Row(name, "colour", f"chromaticity off by {_span(chroma, '.3f')}, white specular {spec}, "
+                        f"{_span([100 * c for c in each('clipped')], '.1f')} % clipped pixels left out "
+                        f"(worst view: drawn sRGB "
+                        f"{np.round(shot).astype(int).tolist()}, texture {np.round(want).astype(int).tolist()})",
+                        max(chroma) <= MAX_CHROMA_DIFF))
+    rows.append(_detail_row(name, "texture detail", "vs the drawn texels", each("detail_r"), each("detail_kind")))
+    if reference is not None:
+        pc = each("photo_chroma")
+        if None in pc:
+            rows.append(Row(name, "photo colours", "no measurable object pixels", False))
+        else:
+            detail = _detail_row(name, "", "", each("photo_r"), each("photo_kind"))
+            rows.append(Row(name, "photo colours", f"vs {reference.path.name}'s vertex colours at the drawn points: "
+                            f"chromaticity off by {_span(pc, '.3f')}; {detail.value}",
+                            max(pc) <= MAX_PHOTO_CHROMA_DIFF and detail.ok is not False))
+    return rows
+
+
 def glb_rows(name: str, views: Views, albedo: Albedo, reference: Reference | None = None) -> list[Row]:
     rows = [Row(name, "loads", f"three.js r{views.info.get('three', '?')}, {views.info.get('triangles', 0):.0f} "
                 f"triangles" + (f"; errors: {'; '.join(views.errors)[:200]}" if views.errors else ""),
@@ -581,28 +613,7 @@ def glb_rows(name: str, views: Views, albedo: Albedo, reference: Reference | Non
     else:
         rows.append(Row(name, "shading varies", f"p90/p10 of rendered/albedo {_span(spread, '.2f')}",
                         min(spread) >= MIN_SHADING_SPREAD))
-    chroma = each("chroma")
-    if None in chroma:
-        rows.append(Row(name, "colour", "no measurable object pixels", False))
-    else:
-        worst = int(np.argmax(chroma))
-        shot, want = (np.clip(ms[list(ms)[worst]][k], 0, 1) ** (1 / 2.2) * 255 for k in ("rgb_shot", "rgb_want"))
-        spec = _span(each("specular"), ".3f")
-        rows.append(Row(name, "colour", f"chromaticity off by {_span(chroma, '.3f')}, white specular {spec}, "
-                        f"{_span([100 * c for c in each('clipped')], '.1f')} % clipped pixels left out "
-                        f"(worst view: drawn sRGB "
-                        f"{np.round(shot).astype(int).tolist()}, texture {np.round(want).astype(int).tolist()})",
-                        max(chroma) <= MAX_CHROMA_DIFF))
-    rows.append(_detail_row(name, "texture detail", "vs the drawn texels", each("detail_r"), each("detail_kind")))
-    if reference is not None:
-        pc = each("photo_chroma")
-        if None in pc:
-            rows.append(Row(name, "photo colours", "no measurable object pixels", False))
-        else:
-            detail = _detail_row(name, "", "", each("photo_r"), each("photo_kind"))
-            rows.append(Row(name, "photo colours", f"vs {reference.path.name}'s vertex colours at the drawn points: "
-                            f"chromaticity off by {_span(pc, '.3f')}; {detail.value}",
-                            max(pc) <= MAX_PHOTO_CHROMA_DIFF and detail.ok is not False))
+    rows += _colour_rows(name, ms, reference)
     bottom, top = each("bottom_height"), each("top_height")
     if None in bottom or None in top:
         rows.append(Row(name, "upright", "no measurable object pixels in some view", False))
@@ -840,7 +851,7 @@ def check_models(models: dict[str, bytes], three: Path, chromium: str = CHROMIUM
     rows: list[Row] = []
     server = Server(three, models)
     try:
-        with _web_view_mod().Chromium(chromium, window) as browser:
+        with _web_view().Chromium(chromium, window) as browser:
             for name, data in models.items():
                 views = render(browser, server.url, name, azimuths)
                 rows += glb_rows(name, views, glb_albedo(*read_glb(data, name)), reference)
