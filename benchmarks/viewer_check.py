@@ -458,8 +458,13 @@ class Reference:
 
 
 def photo_reference(glb: Path) -> Reference | None:
-    """model.ply next to the GLB, if it has vertex colours (the pipeline writes them from the photos)."""
+    """NAME.ply, else model.ply, next to the GLB, if it has vertex colours (the pipeline writes them from the photos).
+
+    A level of detail (model_lod1.glb) has no PLY of its own; the full model's surface stands for it.
+    """
     ply = glb.with_suffix(".ply")
+    if not ply.is_file():
+        ply = glb.parent / "model.ply"
     if not ply.is_file():
         return None
     import trimesh
