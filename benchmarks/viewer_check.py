@@ -165,6 +165,10 @@ def read_glb(data: bytes, name: str = "model.glb") -> tuple[dict, bytes]:
         off += 8 + size
     if gltf is None:
         raise CheckError(f"{name}: no JSON chunk")
+    try:
+        gltf["accessors"][gltf["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]
+    except (KeyError, IndexError, TypeError):
+        raise CheckError(f"{name}: no mesh with POSITION in its first primitive") from None
     return gltf, binary
 
 
@@ -917,7 +921,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         glb, usdz = _inputs(args.target)
         glb_data = glb.read_bytes() if glb else None
-        gltf, binary = read_glb(glb_data, str(glb)) if glb_data else (None, b"")
+        if glb_data is not None:
+            read_glb(glb_data, str(glb))  # bad input is said here, not as a traceback later
     except (CheckError, OSError, ValueError) as e:
         print(f"viewer_check: error: {e}", file=sys.stderr)
         return 2
@@ -931,7 +936,8 @@ def main(argv: list[str] | None = None) -> int:
         elif not Path(args.chromium).exists():
             missing = f"{args.chromium} not found (apt-get install chromium)"
         else:
-            models = {"model": glb_data}
+            label = glb.name if glb is not None else "model"
+            models = {label: glb_data}
             if args.negatives:
                 models.update(negative_models(glb_data))
             t0 = time.perf_counter()
@@ -939,15 +945,15 @@ def main(argv: list[str] | None = None) -> int:
             all_rows = check_models(models, three, args.chromium, args.screenshots, reference=reference)
             print(f"viewer_check: {len(models)} model(s) x {len(AZIMUTHS_DEG)} views x {len(PASSES)} passes in "
                   f"{time.perf_counter() - t0:.1f} s, {WINDOW[0]}x{WINDOW[1]}, headless Chromium (SwiftShader)\n")
-            rows += [r for r in all_rows if r.model == "model"]
+            rows += [r for r in all_rows if r.model == label]
             for name in models:
-                if name == "model":
+                if name == label:
                     continue
                 failed = [r.check for r in all_rows if r.model == name and r.ok is False]
                 negatives_ok &= bool(failed)
                 rows.append(Row(name, "must fail", "fails: " + (", ".join(failed) or "nothing"), bool(failed)))
     if usdz is not None:
-        rows += usdz_rows("model.usdz", usdz, glb_data, args.usdchecker_python)
+        rows += usdz_rows(usdz.name, usdz, glb_data, args.usdchecker_python)
     print_table(rows)
     if missing:
         print(f"\nviewer_check: GLB skipped: {missing}")

@@ -153,6 +153,9 @@ def test_bad_input_is_a_clear_error(tmp_path, capsys):
     (tmp_path / "model.glb").write_bytes(b"not a glb at all")
     assert vc.main([str(tmp_path)]) == 2
     assert "not a binary glTF" in capsys.readouterr().err
+    (tmp_path / "model.glb").write_bytes(vc.write_glb({"asset": {"version": "2.0"}}, b""))  # a GLB without a mesh
+    assert vc.main([str(tmp_path)]) == 2
+    assert "no mesh with POSITION" in capsys.readouterr().err
     (tmp_path / "model.txt").write_text("hello")
     assert vc.main([str(tmp_path / "model.txt")]) == 2
     assert "expected a .glb, a .usdz or a reconstruction folder" in capsys.readouterr().err
