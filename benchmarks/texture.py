@@ -4,15 +4,16 @@ Every 4th frame is held out: ``turntable reconstruct --cameras --masks --no-fusi
 frames only (their images, masks and cameras), once per configuration:
 
 * vertex colours, ``--no-texture --max-faces 100000`` (the model before issue 12),
-* textured, ``--max-faces 50000`` (the new default; texture side chosen by ``recon.texture.texture_side``),
-* textured, ``--max-faces 10000``,
+* textured, ``--max-faces 50000 --lods 10000,2000`` (the default model and its two levels of detail,
+  ``model_lod1.glb``/``model_lod2.glb``, which share its texture),
+* textured, ``--max-faces 10000`` (a 10k model with its own atlas).
 
-and, on the 50 000-face mesh, the texture baked at a fixed 2048² (``uv_atlas`` + ``bake_texture``).
 Each model is rendered into every held-out frame with ``recon.texture.render_albedo`` (ray cast,
 unlit, as a glTF viewer samples the texture / interpolates ``COLOR_0``) and compared with the photo
 inside the object's reference silhouette: PSNR (dB) and SSIM (``skimage.metrics``, Gaussian 1.5 px,
-mean over the silhouette eroded by 2 px). Times: the ``texture`` stage of ``summary.json`` (atlas +
-bake) for the runs, and atlas and bake apart for the fixed 2048².
+mean over the silhouette eroded by 2 px). Time: the ``texture`` stage of ``summary.json`` (atlas +
+bake, all levels). Every GLB is checked with the Khronos validator (``benchmarks/gltf_validate.mjs``)
+where node finds the npm package ``gltf-validator`` (set NODE_PATH), else the column says so.
 
 Run: ``nice .venv/bin/python benchmarks/texture.py [--data data/sample /work/shared/realdata/squirrel ...]``
 (each folder holds ``images/``, ``masks/`` and ``cameras_gt.json`` or ``cameras.json``). Prints a markdown table.
@@ -25,6 +26,8 @@ import dataclasses
 import json
 import os
 import platform
+import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -37,15 +40,16 @@ from skimage.metrics import structural_similarity
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run without installing
 
-from recon.texture import bake_texture, render_albedo, uv_atlas  # noqa: E402
+from recon.texture import render_albedo  # noqa: E402
 from recon.types import TableMesh  # noqa: E402
 from turntable.cameras_io import read_cameras, write_cameras  # noqa: E402
 from turntable.cli import main as turntable_main  # noqa: E402
 
 HOLD_OUT_EVERY = 4
 CONFIGS = [("vertex colours, 100k", ["--no-texture", "--max-faces", "100000"]),
-           ("textured, 50k", ["--max-faces", "50000"]),
+           ("textured, 50k", ["--max-faces", "50000", "--lods", "10000,2000"]),
            ("textured, 10k", ["--max-faces", "10000"])]
+REPO = Path(__file__).resolve().parents[1]
 
 
 def _cameras_file(folder: Path) -> Path:
@@ -82,13 +86,13 @@ def split_sequence(folder: Path, work: Path) -> tuple[Path, Path, Path, list]:
     return work / "images", work / "masks", cams, held
 
 
-def load_model(out: Path, textured: bool):
+def load_model(out: Path, textured: bool, glb: str = "model.glb"):
     """(TableMesh mm, texcoords or None, texture or None) as a viewer loads model.glb / model.ply."""
     if not textured:
         m = trimesh.load(out / "model.ply", process=False)
         return TableMesh(np.asarray(m.vertices) * 1000.0, np.asarray(m.faces),
                          colors_rgb=np.asarray(m.visual.vertex_colors)[:, :3]), None, None
-    m = trimesh.load(out / "model.glb", force="mesh", process=False)
+    m = trimesh.load(out / glb, force="mesh", process=False)
     uv = np.asarray(m.visual.uv, np.float64).copy()
     uv[:, 1] = 1.0 - uv[:, 1]  # trimesh's OBJ convention back to glTF's
     tex = np.asarray(m.visual.material.baseColorTexture.convert("RGB"))
@@ -115,23 +119,18 @@ def fidelity(folder: Path, held, seq_K, model) -> tuple[float, float]:
     return float(np.mean(psnr)), float(np.mean(ssim))
 
 
-def fixed_2048(folder: Path, work: Path, out50: Path, K):
-    """The 50k mesh's texture baked at 2048² from the training frames: (model, atlas s, bake s)."""
-    ply = trimesh.load(out50 / "model.ply", process=False)
-    V = np.asarray(ply.vertices) * 1000.0
-    F = np.asarray(ply.faces)
-    seq = read_cameras(work / "cameras.json")
-    images = [cv2.cvtColor(cv2.imread(str(work / "images" / Path(f.image).name)), cv2.COLOR_BGR2RGB)
-              for f in seq.frames]
-    masks = [cv2.imread(str(_mask_path(folder, Path(f.image).name)), cv2.IMREAD_GRAYSCALE) for f in seq.frames]
-    Ts = np.stack([f.T_cam_table for f in seq.frames])
-    t0 = time.perf_counter()
-    src, faces, uv = uv_atlas(V, F, 2048)
-    t1 = time.perf_counter()
-    mesh = TableMesh(V[src], faces, np.asarray(ply.vertex_normals)[src], np.asarray(ply.visual.vertex_colors)[src, :3])
-    tex = bake_texture(mesh, uv, images, K, Ts, masks=masks, size=2048)
-    t2 = time.perf_counter()
-    return (mesh, uv, tex), t1 - t0, t2 - t1, len(images), images[0].shape
+def khronos(glb: Path) -> str:
+    """'0 errors, 0 warnings' (the validator's counts), or why it did not run."""
+    node = shutil.which("node")
+    if node is None:
+        return "no node"
+    res = subprocess.run([node, str(REPO / "benchmarks" / "gltf_validate.mjs"), str(glb)], capture_output=True,
+                         text=True, timeout=300)
+    try:
+        report = json.loads(res.stdout.splitlines()[-1])
+    except (IndexError, ValueError):
+        return "validator not found (NODE_PATH)" if "gltf-validator" in res.stderr else f"exit {res.returncode}"
+    return f"{report['errors']} errors, {report['warnings']} warnings"
 
 
 def run(folder: Path) -> list[dict]:
@@ -140,7 +139,6 @@ def run(folder: Path) -> list[dict]:
         work = Path(tmp)
         images, masks, cams, held = split_sequence(folder, work / "train")
         K = read_cameras(cams).intrinsics.K
-        outs = {}
         for label, flags in CONFIGS:
             out = work / label.replace(" ", "_").replace(",", "")
             code = turntable_main(["reconstruct", str(images), "--cameras", str(cams), "--masks", str(masks),
@@ -149,19 +147,16 @@ def run(folder: Path) -> list[dict]:
                 raise SystemExit(f"{folder}: reconstruct {label} exited {code}")
             summary = json.loads((out / "summary.json").read_text())
             textured = "--no-texture" not in flags
-            model = load_model(out, textured)
-            p, s = fidelity(folder, held, K, model)
-            side = model[2].shape[0] if textured else None
-            rows.append({"data": folder.name, "model": label, "faces": summary["mesh"]["faces"],
-                         "texture": f"{side}²" if side else "-", "psnr": p, "ssim": s,
-                         "time": summary["time_s"].get("texture"), "colour_time": summary["time_s"].get("colour")})
-            outs[label] = out
-        model, t_atlas, t_bake, n_views, shape = fixed_2048(folder, work / "train", outs["textured, 50k"], K)
-        p, s = fidelity(folder, held, K, model)
-        rows.append({"data": folder.name, "model": "textured, 50k, fixed 2048²", "faces": len(model[0].faces),
-                     "texture": "2048²", "psnr": p, "ssim": s, "time": t_atlas + t_bake,
-                     "note": f"atlas {t_atlas:.1f} s + bake {t_bake:.1f} s, {n_views} views {shape[1]}x{shape[0]}",
-                     "colour_time": None})
+            levels = [lv["file"] for lv in summary["texture"]["levels"]] if textured else ["model.ply"]
+            for i, glb in enumerate(levels):
+                model = load_model(out, textured, glb)
+                p, s = fidelity(folder, held, K, model)
+                side = model[2].shape[0] if textured else None
+                rows.append({"data": folder.name, "model": label if i == 0 else f"{label}: {glb}",
+                             "faces": len(model[0].faces), "texture": f"{side}²" if side else "-", "psnr": p,
+                             "ssim": s, "time": summary["time_s"].get("texture") if i == 0 else None,
+                             "colour_time": summary["time_s"].get("colour") if i == 0 else None,
+                             "valid": khronos(out / glb) if textured else "-"})
     for r in rows:
         r["held_out"] = len(held)
     return rows
@@ -176,13 +171,13 @@ def main() -> None:
         rows += run(Path(d))
         print(f"done {d}", file=sys.stderr, flush=True)
     print(f"\n{platform.node()} {os.cpu_count()} cores, {time.strftime('%Y-%m-%d %H:%M')}\n")
-    print("| data | model | faces | texture | held-out PSNR dB | SSIM | texture stage s | note |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| data | model | faces | texture | held-out PSNR dB | SSIM | texture stage s | Khronos validator | note |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         t = "-" if r["time"] is None else f"{r['time']:.1f}"
-        note = r.get("note") or (f"colour stage {r['colour_time']:.1f} s" if r["colour_time"] else "")
+        note = f"colour stage {r['colour_time']:.1f} s" if r["colour_time"] else ""
         print(f"| {r['data']} ({r['held_out']} held out) | {r['model']} | {r['faces']} | {r['texture']} | "
-              f"{r['psnr']:.2f} | {r['ssim']:.4f} | {t} | {note} |")
+              f"{r['psnr']:.2f} | {r['ssim']:.4f} | {t} | {r['valid']} | {note} |")
 
 
 if __name__ == "__main__":
