@@ -379,6 +379,10 @@ def test_reconstruct_lods_summary_and_cached_texture(small_scene, tmp_path, caps
     assert "texture: reused" in captured.err
     assert "texture" not in json.loads((out / "summary.json").read_text())["time_s"]  # not baked again
     assert {p.name: p.read_bytes() for p in out.glob("model*")} == before
+    smaller = [a if a != "512" else "256" for a in again]  # another option: baked again, at that size
+    assert main(smaller) == 0
+    assert "texture: reused" not in capsys.readouterr().err
+    assert json.loads((out / "summary.json").read_text())["texture"]["size_px"] == 256
 
 
 def test_no_texture_summary_says_vertex_colours(small_scene, tmp_path, capsys):
