@@ -201,6 +201,13 @@ def test_lods_share_the_one_texture_and_keep_its_detail(baked_lods):
         assert np.percentile(err, 90) < ALBEDO_P90_TOL_DN, (i, np.percentile(err, 90))
 
 
+def test_a_level_not_below_the_finer_one_is_left_out(box_views):
+    mesh, images, masks, Ts = box_views
+    textured = texture_mesh(mesh, images[:4], _K(), Ts[:4], masks=masks[:4], size=256,
+                            lods=(len(mesh.faces) + 10, 100))
+    assert [len(lv.mesh.faces) <= 100 for lv in textured.lods] == [True]
+
+
 def test_lod_renders_match_a_view(box_views, baked_lods):
     mesh, images, masks, Ts = box_views
     for level in baked_lods.lods:
