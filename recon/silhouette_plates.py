@@ -5,7 +5,10 @@ median over frames is the *room plate*. The turntable disc and the printed
 target turn with the table: every frame rectified onto the plane ``Y = 0``
 (:func:`rectify_to_table`) and the median there is the *table plate*, warped
 back into each frame (:meth:`Plates.table_in_frame`). A plate is trusted where
-most frames agree with it. Used by :mod:`recon.silhouettes`.
+most frames agree with it, except a plain island of the table plate that
+untrusted texels enclose (:func:`untrust_enclosed`: the top of something that
+turns with the table above the plane, such as a plinth). Used by
+:mod:`recon.silhouettes`.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ from .silhouette_checks import camera_azimuths_deg
 from .silhouette_doubt import Plate, colour_dist, in_set, plate_envelope, range_dist
 
 __all__ = ["Plates", "rectify_to_table", "raster_to_table", "median_frames", "below_horizon", "table_plate",
-           "PLANE_PX_PER_MM", "PLATE_BORDER_MM", "TRUST", "STRONG"]
+           "PLANE_PX_PER_MM", "PLATE_BORDER_MM", "TRUST", "STRONG", "untrust_enclosed"]
 
 PLANE_PX_PER_MM = 2.5  # table-plate resolution
 PLATE_BORDER_MM = 40.0  # the table plate reaches this far beyond the working volume
@@ -141,6 +144,41 @@ def table_plate(rect: np.ndarray, seen: np.ndarray, T: np.ndarray, tau: float, r
     return plate, lo, hi, ((agree >= TRUST) & all_seen).astype(np.uint8)
 
 
+def untrust_enclosed(trust: np.ndarray, plate: np.ndarray, tau: float) -> np.ndarray:
+    """The table plate's trust (uint8) less its plain islands: trusted texels that untrusted ones enclose.
+
+    A surface that turns with the table above the plane (a plinth's top) looks
+    the same in every frame rectified onto the plane, so the plate there is
+    that surface, trusted, and where it has the paper's colour it explains
+    itself away as paper in every view: the white figure's plinth was carved
+    off whole (0.97 of its 1.55 % Chamfer). Its outline gives it away: the
+    parallax of its edges (up to ``h cot(elevation)`` on the plane) and its
+    shaded sides change from frame to frame, so the plate is untrusted in a
+    closed band around it. The paper itself is one trusted expanse around the
+    object, reaching the plate's border, and the islands a trusted but plain
+    texture (grey-level 3 x 3 spread under ``2 tau`` on most of it) the band
+    encloses are no longer trusted: a view then tells them from the paper only
+    by what joins them to the mask. An island showing printed ink (the ring,
+    the marks) is paper seen through a gap of the object and keeps its trust.
+    """
+    t = (trust > 0).astype(np.uint8)
+    n, lab = cv2.connectedComponents(t, connectivity=4)
+    if n <= 2:
+        return trust
+    sizes = np.bincount(lab.ravel(), minlength=n)
+    sizes[0] = 0
+    outer = np.zeros(n, bool)
+    outer[np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))] = True
+    outer[int(np.argmax(sizes))] = True
+    g = cv2.cvtColor(plate, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    m = cv2.blur(g, (3, 3))
+    inked = (cv2.blur(g * g, (3, 3)) - m * m) > (2.0 * tau) ** 2
+    ink_share = np.bincount(lab.ravel(), weights=inked.ravel(), minlength=n) / np.maximum(sizes, 1)
+    keep = outer | (ink_share > 0.1)
+    keep[0] = False
+    return (keep[lab] & (t > 0)).astype(np.uint8)
+
+
 class Plates:
     """Room plate (image) and table plate (rectified plane), with where they are trusted."""
 
@@ -162,6 +200,10 @@ class Plates:
         seen = np.stack([rectify_to_table(ones, K, t, self.plane_radius, PLANE_PX_PER_MM) > 0 for t in T])
         self.table, self.table_lo, self.table_hi, self.table_trust = table_plate(rect, seen, T, tau,
                                                                                   radius_mm * PLANE_PX_PER_MM)
+        trust = untrust_enclosed(self.table_trust, self.table, tau)
+        # an island is no room's either: a static object there (a body of revolution) is the room plate too
+        self.table_island = (self.table_trust > trust).astype(np.uint8)
+        self.table_trust = trust
         self.K, self.box = K, box
 
     def table_in_frame(self, T: np.ndarray, size_hw) -> Plate:
@@ -176,3 +218,16 @@ class Plates:
         trust = cv2.warpPerspective(self.table_trust, M, (w, h), flags=cv2.INTER_NEAREST, borderValue=0) > 0
         trust &= below_horizon(self.K, T, self.box, size_hw)
         return Plate(table, lo, hi, trust, trust)
+
+    def island_in_frame(self, T: np.ndarray, size_hw) -> np.ndarray:
+        """(h, w) bool: the pixels of frame ``T``'s box that show an untrusted island of the table plate
+        (:func:`untrust_enclosed`): no plate explains them, the room plate neither."""
+        h, w = size_hw
+        if not self.table_island.any():
+            return np.zeros((h, w), bool)
+        y0, x0 = self.box
+        n = self.table.shape[0]
+        M = np.array([[1.0, 0, -x0], [0, 1.0, -y0], [0, 0, 1.0]]) @ plane_homography(self.K, T) \
+            @ raster_to_table(n, PLANE_PX_PER_MM)
+        island = cv2.warpPerspective(self.table_island, M, (w, h), flags=cv2.INTER_NEAREST, borderValue=0) > 0
+        return island & below_horizon(self.K, T, self.box, size_hw)

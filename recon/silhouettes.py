@@ -65,6 +65,7 @@ dropping them would leave more than 30 deg of the turn without a view).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections.abc import Callable
@@ -377,6 +378,13 @@ class _FrameOut:
     paper: np.ndarray  # (h, w) bool: the table plate matches closely (see doubt_joined)
 
 
+def _without(plate: Plate, pixels: np.ndarray) -> Plate:
+    """``plate`` not trusted at ``pixels``."""
+    if not pixels.any():
+        return plate
+    return dataclasses.replace(plate, trust=plate.trust & ~pixels, strong=plate.strong & ~pixels)
+
+
 def _frame_mask(img, region, base, plates: Plates, T, tau, verified: bool) -> _FrameOut:
     """Mask of one frame inside the box, the doubtful pixels, and how well its outline is supported.
 
@@ -384,15 +392,17 @@ def _frame_mask(img, region, base, plates: Plates, T, tau, verified: bool) -> _F
     colour is one of the room's (see :class:`Plates`).
     """
     h, w = img.shape[:2]
-    room = plates.room_verified if verified else plates.room
     table = plates.table_in_frame(T, (h, w))
+    island = plates.island_in_frame(T, (h, w))
+    room_v = _without(plates.room_verified, island)
+    room = room_v if verified else _without(plates.room, island)
     dist = _plate_distances(img, room, table)  # the same for plates.room and plates.room_verified
     # In a plain room the room plate's explanations are hard only in the room's own colours: inside
     # the volume's image a static object (a plain body of revolution) is part of the plate. (A
     # cluttered room shows too many colours to tell; there the second pass below handles it.)
     plain = plates.room_colours.mean() < _PLAIN_ROOM
     ev = _initial_labels(img, region, room, table, tau, plates.room_colours, dist,
-                         plates.room_verified.strong if plain else None)
+                         room_v.strong if plain else None)
     prob = _grabcut(img, ev.labels)
     scale = math.sqrt(h * w / _WORK_PX)
     mask = _refine_outline(prob, ev.explained, ev.disagrees, band_px=max(2, int(math.ceil(scale)) + 1)) & region
@@ -400,8 +410,7 @@ def _frame_mask(img, region, base, plates: Plates, T, tau, verified: bool) -> _F
     mask = _clean(mask, base, ev.explained)
     # For a frame in doubt, the room plate explains only with the room's own colours: it may be
     # the object itself where that covers the same pixels in most frames.
-    ev_v = ev if verified else _initial_labels(img, region, plates.room_verified, table, tau, plates.room_colours,
-                                               dist)
+    ev_v = ev if verified else _initial_labels(img, region, room_v, table, tau, plates.room_colours, dist)
     ink = texture_match(img, table, tau)
     return _FrameOut(mask, doubtful_pixels(img, mask, region, ev_v, ink, False),
                      doubtful_pixels(img, mask, region, ev_v, ink, True), _outline_support(img, mask, ev, tau),

@@ -331,3 +331,32 @@ def test_doubt_joined_keeps_a_shaded_side_and_stops_at_the_wall():
     assert not unknown[wall].any()
     assert unknown[42:, :].sum() == 0  # the paper two rows below the foot on
     assert not (unknown & mask).any()
+
+
+def test_untrust_enclosed_drops_plain_islands_only():
+    """The table plate of a surface turning with the table above the plane (a white plinth's top)
+    is trusted and has the paper's colour, but an untrusted band (its edges' parallax) encloses it:
+    that island loses its trust. The paper around (reaching the border) keeps it, and so does an
+    enclosed island showing printed ink (paper seen through a gap of the object)."""
+    from recon.silhouette_plates import untrust_enclosed
+
+    n = 120
+    rng = np.random.default_rng(3)
+    plate = np.clip(np.full((n, n, 3), 225.0) + rng.normal(0.0, 1.0, (n, n, 3)), 0, 255).astype(np.uint8)
+    trust = np.ones((n, n), np.uint8)
+    trust[20:50, 20:60] = 0  # band around a plain island
+    trust[20:50, 70:110] = 0  # band around an inked island
+    trust[80:100, 10:30] = 0  # an untrusted blob enclosing nothing
+    plain = (slice(26, 44), slice(26, 54))
+    inked = (slice(26, 44), slice(76, 104))
+    trust[plain] = 1
+    trust[inked] = 1
+    plate[30:40, 80:100:3] = 20  # printed marks
+    out = untrust_enclosed(trust, plate, tau=6.0)
+    assert out.dtype == np.uint8 and out.shape == trust.shape
+    assert not out[plain].any()  # the island of the paper's plain colour: no longer trusted
+    assert out[inked].all()  # the island with ink keeps its trust
+    assert (out[trust == 0] == 0).all()  # never trusts what was untrusted
+    outside = trust.astype(bool).copy()
+    outside[plain] = False
+    assert out[outside].all()  # the paper around keeps its trust
