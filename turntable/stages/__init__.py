@@ -6,6 +6,7 @@
 ``silhouettes``   automatic or ``--masks``; a verdict per view (ok / conservative / rejected)
 ``hull``          visual-hull carving in a working volume (``volume``) grown until the object fits
 ``fusion``        per-view stereo and the fused surface, kept only where held-out views confirm it
+``texture``       the UV atlas and the photo texture of the final mesh (and ``--lods``), cached
 ``export``        the model files and exports (COLMAP, nerfstudio), into the staging folder
 ``summary``       the run's verdict (failed checks) and :class:`ReconstructSummary`: ``summary.json`` and the screen
 ================  ==============================================================
