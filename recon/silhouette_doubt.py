@@ -167,8 +167,10 @@ def doubt_joined(img: np.ndarray, mask: np.ndarray, doubtful: np.ndarray, paper:
     matches closely (the plane's own colour at that point, not a shadow of it):
     from an object part of the paper's colour resting on it there is no edge,
     and a grown region flooded the paper up to the printed rings. So a white
-    object's part that looks exactly like the paper where it stands (a
-    plinth's top) stays to the other views, like a doubtful part behind an edge
+    object's part that looks exactly like the paper where it stands stays to
+    the other views (a plinth's top is not ``paper``: the table plate there is
+    an untrusted island, see :func:`recon.silhouette_plates.untrust_enclosed`),
+    like a doubtful part behind an edge
     (a figure's head, its colour a plate's, beyond a shaded neck). Joining
     those across edges as well kept the head but let the unknown run over a
     cluttered wall of the object's colours (rendered chair, hull Chamfer 1.83
