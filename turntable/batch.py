@@ -95,7 +95,8 @@ def find_objects(root: Path, out: Path | None = None) -> list[tuple[str, Path]]:
             found.append((p.stem, p))
     names = [n for n, _ in found]
     for n, p in found:
-        check_name(n, str(p))  # not one of OUT's report files
+        if n.casefold() in RESERVED_NAMES:
+            check_name(n, str(p))  # not one of OUT's report files (other names: as the filesystem has them)
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise UserError(f"{root}: two objects would write OUT/{dup[0]} (a folder and a video of one name)")
