@@ -130,10 +130,19 @@ def silhouette_sdf_px(mask: np.ndarray, margin_px: int = 64) -> np.ndarray:
         out[r0:r1, c0:c1] = np.float32(_UNSEEN_PX)
         return out
     # the crop touches the image border where the mask does: distances stay inside the image
-    d_in = cv2.distanceTransform(crop, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    d_out = cv2.distanceTransform(1 - crop, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    # The precise transform's distances are between pixel centres, square roots of integers; OpenCV
+    # computes them with IPP on one thread (or a crop under 2^14 px) and with its own code on more,
+    # equal to an ulp, not to the bit. Snapped to sqrt(round(d^2)), a hull (and everything after it)
+    # no longer depends on the thread count (`--threads 1`, a batch job on one core).
+    d_in = _exact(cv2.distanceTransform(crop, cv2.DIST_L2, cv2.DIST_MASK_PRECISE))
+    d_out = _exact(cv2.distanceTransform(1 - crop, cv2.DIST_L2, cv2.DIST_MASK_PRECISE))
     out[r0:r1, c0:c1] = np.where(crop > 0, d_in - 0.5, 0.5 - d_out)
     return out
+
+
+def _exact(d: np.ndarray) -> np.ndarray:
+    """Distances between pixel centres snapped to ``sqrt`` of their integer square (float32)."""
+    return np.sqrt(np.rint(d.astype(np.float64) ** 2)).astype(np.float32)
 
 
 def _check_inputs(masks, K, T_cam_table, max_rejections):

@@ -16,7 +16,8 @@ Found this way (2026-12-02): OpenCV's precise distance transform, which the
 hull's silhouette distances use, takes IPP's code on one thread and its own on
 more; they agree to an ulp, not to the bit, and the hull, the fused mesh and
 the texture followed (benchmarks/batch.py: a batch job on one core against a
-separate run on two). ``test_silhouette_distances_ignore_opencv_threads``
+separate run on two). ``recon.carving.silhouette_sdf_px`` now snaps them to
+``sqrt`` of their integer square; ``test_silhouette_distances_ignore_opencv_threads``
 checks that function alone.
 """
 
@@ -33,9 +34,6 @@ from turntable.cli import _THREAD_VARS, main
 from turntable.synth import SynthOptions, make_sequence
 
 SKIP = ("summary.json", "recording.rrd")  # times; the recording's own timestamps
-NOT_YET = ("recon/carving.py silhouette_sdf_px: cv2.distanceTransform(DIST_MASK_PRECISE) runs IPP's float code on "
-           "one thread and OpenCV's own on more; the fix (snap both to sqrt of the integer squared distance) is "
-           "not in yet")
 
 
 @contextmanager
@@ -89,7 +87,6 @@ def _reconstruct_one_thread(scene, out, monkeypatch) -> None:
 
 
 @pytest.mark.skipif(not cv2.ipp.useIPP(), reason="OpenCV without IPP: one code path at any thread count")
-@pytest.mark.xfail(strict=True, reason=NOT_YET)
 def test_silhouette_distances_ignore_opencv_threads():
     assert not _sdf_thread_dependent()
 
@@ -109,6 +106,4 @@ def test_two_clean_runs_give_identical_files(scene, tmp_path, monkeypatch):
     assert {"model.ply", "model.glb", "model_albedo.png", "points.ply", "cameras.json"} <= files  # fusion, texture
     assert files == {p.name for p in (tmp_path / "b").iterdir() if p.is_file() and p.name not in SKIP}
     differ = sorted(n for n in files if (tmp_path / "a" / n).read_bytes() != (tmp_path / "b" / n).read_bytes())
-    if differ and _sdf_thread_dependent():
-        pytest.xfail(f"{', '.join(differ)} differ: {NOT_YET}")
     assert not differ, f"{', '.join(differ)} differ between the two runs"
