@@ -135,8 +135,9 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
         else:
             used.append(f)
     if len(used) < 3:
-        raise UserError(f"{opts.input}: only {len(used)} frame(s) could be calibrated; need at least 3 "
-                        f"({'; '.join(f'{k}: {v}' for k, v in list(skipped.items())[:4])})")
+        why = "; ".join(f"{k}: {v}" for k, v in list(skipped.items())[:4])
+        raise UserError(f"{opts.input}: only {len(used)} frame(s) could be calibrated; need at least 3"
+                        + (f" ({why})" if why else ""))
     names = [f.name for f in used]
     K = ws.K(seq.intrinsics.K)  # the work images' camera (cameras.json keeps the photos')
     Ts = np.stack([by_name[n].T_cam_table for n in names])
