@@ -1,4 +1,5 @@
-"""benchmarks/viewer_check.py: a reconstruction's GLB in three.js (headless Chromium) and its USDZ in usd-core.
+"""benchmarks/viewer_check.py (with viewer_glb.py, viewer_usd.py): a reconstruction's GLB in three.js (headless
+Chromium) and its USDZ in usd-core.
 
 The reconstruction is a small synthetic one (a vase with the synthetic
 renderer's procedural texture, 8 frames 320x240, true cameras and masks,
@@ -15,7 +16,6 @@ does not draw, one wound inside out and one whose st is not the GLB's
 part skips without usd-core.
 """
 
-import importlib.util
 import shutil
 import sys
 import zipfile
@@ -26,17 +26,12 @@ import pytest
 from turntable.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _viewer_check():
-    spec = importlib.util.spec_from_file_location("viewer_check", ROOT / "benchmarks" / "viewer_check.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
-
-
-vc = _viewer_check()
+# the scripts' folder, as when viewer_check.py runs as a script: it and its siblings import each other by name;
+# appended, not first: benchmarks/ holds names as plain as texture.py and batch.py
+sys.path.append(str(ROOT / "benchmarks"))
+import viewer_check as vc  # noqa: E402
+import viewer_glb as vg  # noqa: E402
+import viewer_usd as vu  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -70,8 +65,8 @@ def _failed(rows, model: str) -> set[str]:
 
 def test_glb_passes_in_three_js_and_broken_copies_fail(three, recon, tmp_path):
     glb = (recon / "model.glb").read_bytes()
-    models = {"model": glb, **vc.negative_models(glb)}
-    reference = vc.photo_reference(recon / "model.glb")
+    models = {"model": glb, **vg.negative_models(glb)}
+    reference = vg.photo_reference(recon / "model.glb")
     assert reference is not None and reference.path.name == "model.ply"
     rows = vc.check_models(models, three, screenshots=tmp_path, azimuths=(0, 180), reference=reference,
                            window=(480, 360))
@@ -109,7 +104,7 @@ def test_usdz_checks_pass_and_broken_copies_fail(recon, tmp_path):
     from pxr import UsdGeom, UsdShade
 
     glb = (recon / "model.glb").read_bytes()
-    rows = vc.usdz_rows("usdz", recon / "model.usdz", glb)
+    rows = vu.usdz_rows("usdz", recon / "model.usdz", glb)
     assert [r.check for r in rows if not r.ok] == []
     assert {"usd validators", "ARKit rules", "up axis", "metres per unit", "texture binding", "surface",
             "bounds"} <= {r.check for r in rows}
@@ -125,7 +120,7 @@ def test_usdz_checks_pass_and_broken_copies_fail(recon, tmp_path):
         surface.GetInput("diffuseColor").DisconnectSource()
 
     def failed(edit, folder: str) -> set[str]:
-        rows = vc.usdz_rows(folder, _repackaged(recon / "model.usdz", tmp_path / folder, edit), glb)
+        rows = vu.usdz_rows(folder, _repackaged(recon / "model.usdz", tmp_path / folder, edit), glb)
         return {r.check for r in rows if r.ok is False}
 
     def curves(stage):  # a prim type AR Quick Look does not draw
@@ -153,7 +148,7 @@ def test_bad_input_is_a_clear_error(tmp_path, capsys):
     (tmp_path / "model.glb").write_bytes(b"not a glb at all")
     assert vc.main([str(tmp_path)]) == 2
     assert "not a binary glTF" in capsys.readouterr().err
-    (tmp_path / "model.glb").write_bytes(vc.write_glb({"asset": {"version": "2.0"}}, b""))  # a GLB without a mesh
+    (tmp_path / "model.glb").write_bytes(vg.write_glb({"asset": {"version": "2.0"}}, b""))  # a GLB without a mesh
     assert vc.main([str(tmp_path)]) == 2
     assert "no mesh with POSITION" in capsys.readouterr().err
     (tmp_path / "model.txt").write_text("hello")
