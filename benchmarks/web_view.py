@@ -160,13 +160,19 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def start_view(out: Path, port: int, timeout: float = 60.0) -> tuple[subprocess.Popen, str]:
     """``turntable view OUT --web --port PORT``: the process and the URL it printed."""
     # its own process group, like a command in a terminal: Ctrl-C (stop_view) and a kill reach the Rerun server
     # too, which otherwise could outlive it holding our pipes open
+    # and with Ctrl-C's default action, even when this process was started as `cmd &` by a script (a
+    # non-interactive shell ignores SIGINT there, and children inherit that: stop_view then had to kill it)
     proc = subprocess.Popen([PY, "-m", "turntable", "view", str(out), "--web", "--port", str(port)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
-                            start_new_session=True)
+                            start_new_session=True, preexec_fn=_default_sigint)
     deadline = time.monotonic() + timeout
     assert proc.stdout is not None
     for line in proc.stdout:  # the URL is printed before the server is waited on

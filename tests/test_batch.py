@@ -284,7 +284,10 @@ def test_ctrl_c_stops_cleanly_and_keeps_what_finished(root, tmp_path):
     # job per core an idle machine finished the other two (0.4-3 s each) before SIGINT landed: exit 0
     cmd = [sys.executable, "-m", "turntable", "batch", str(small), "--out", str(out), *JOB_FLAGS,
            "--cpus-per-job", str(_ray_cpus())]
-    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
+    # Ctrl-C's default action in the child even when this run was started in the background of a script
+    # (a non-interactive shell starts `cmd &` with SIGINT ignored, and a child inherits that)
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     first_line = proc.stderr.readline()
     while first_line and not first_line.startswith("[1/"):  # Ray's own lines first
         first_line = proc.stderr.readline()

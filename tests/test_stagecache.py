@@ -210,7 +210,7 @@ def auto_scan(scene, tmp_path_factory):
     assert main(["reconstruct", *map(str, _auto(scene, out)), "--resolution", "32", "--max-faces", "5000",
                  "--no-fusion", "--quiet"]) == 0
     assert sorted(p.name for p in (out / ".turntable").glob("*.npz")) == \
-        ["detections.npz", "hull.npz", "silhouettes.npz", "volume.npz"]
+        ["detections.npz", "hull.npz", "silhouettes.npz", "texture.npz", "volume.npz"]
     # beside the stages: the cached calibration, the lock and the record of the published set, nothing else
     assert sorted(p.name for p in (out / ".turntable").iterdir() if p.suffix != ".npz") == \
         ["cameras.json", "lock", "published.json"]
