@@ -206,13 +206,16 @@ class Plates:
         self.table_trust = trust
         self.K, self.box = K, box
 
+    def _to_box(self, T: np.ndarray) -> np.ndarray:
+        """3x3 map from the table-plate raster to the pixels of frame ``T``'s box."""
+        y0, x0 = self.box
+        return np.array([[1.0, 0, -x0], [0, 1.0, -y0], [0, 0, 1.0]]) @ plane_homography(self.K, T) \
+            @ raster_to_table(self.table.shape[0], PLANE_PX_PER_MM)
+
     def table_in_frame(self, T: np.ndarray, size_hw) -> Plate:
         """The table plate warped into the box of frame ``T``."""
         h, w = size_hw
-        y0, x0 = self.box
-        n = self.table.shape[0]
-        M = np.array([[1.0, 0, -x0], [0, 1.0, -y0], [0, 0, 1.0]]) @ plane_homography(self.K, T) \
-            @ raster_to_table(n, PLANE_PX_PER_MM)
+        M = self._to_box(T)
         table, lo, hi = [cv2.warpPerspective(p, M, (w, h), flags=cv2.INTER_LINEAR, borderValue=0)
                          for p in (self.table, self.table_lo, self.table_hi)]
         trust = cv2.warpPerspective(self.table_trust, M, (w, h), flags=cv2.INTER_NEAREST, borderValue=0) > 0
@@ -225,9 +228,6 @@ class Plates:
         h, w = size_hw
         if not self.table_island.any():
             return np.zeros((h, w), bool)
-        y0, x0 = self.box
-        n = self.table.shape[0]
-        M = np.array([[1.0, 0, -x0], [0, 1.0, -y0], [0, 0, 1.0]]) @ plane_homography(self.K, T) \
-            @ raster_to_table(n, PLANE_PX_PER_MM)
-        island = cv2.warpPerspective(self.table_island, M, (w, h), flags=cv2.INTER_NEAREST, borderValue=0) > 0
+        island = cv2.warpPerspective(self.table_island, self._to_box(T), (w, h), flags=cv2.INTER_NEAREST,
+                                     borderValue=0) > 0
         return island & below_horizon(self.K, T, self.box, size_hw)
