@@ -40,13 +40,17 @@ table): it stays at the image centre, and the result's ``diagnostics`` say so. O
 they are estimated and refused -- kept at their defaults, ``diagnostics.not_estimated``
 says why -- when their standard deviation from the Jacobian (``cov = s^2 (J^T J)^-1``)
 exceeds :data:`MAX_STD`; ``k1`` then ``k2`` must moreover lower the RMS by
-:data:`MIN_RMS_GAIN` (else a few 1e-3 of spurious k1 absorb edge-detection bias
+:data:`~calib.sequence_fit.MIN_RMS_GAIN` (else a few 1e-3 of spurious k1 absorb edge-detection bias
 and move f).
 
 Angles: ``angle_deg`` is the rotation of the table frame about +Y, right-handed
 (``TURN_SIGN``; ``turntable synth``'s convention), 0 at the first frame whose
 marks were read (``k * step_deg`` with a step). The table frame of every pose is
 the printed one (+X at the 0 deg mark) when the marks were read.
+
+This module holds the entry point, the per-frame stage (single-view calibration and
+the marks) and the steps of the sequence (the angles, the mode, the frames left out,
+the result); the fits themselves and their thresholds are in :mod:`calib.sequence_fit`.
 """
 
 from __future__ import annotations
@@ -59,23 +63,24 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .calibrate import calibrate_view
-from .camera import camera_centre_table, make_T, rotation_from_normal
 from .distortion import undistort_px
 from .marks import align_pose_to_marks, read_turntable_angle
-from .sequence_model import (
-    FitReport,
-    FitState,
-    FitStep,
-    FrameEdges,
-    JointFit,
-    JointProblem,
-    fit_joint,
-    project_rotation,
-    rot_y,
-    solve_joint,
-    wrap_angle,
-    yaw_of,
+from .sequence_fit import (
+    FRAME_ERRORS,
+    MAX_STD,
+    AngleReader,
+    FitSetup,
+    add_distortion,
+    bad_frames,
+    choose_mode,
+    circle_fit,
+    extend_intrinsics,
+    fit_handheld,
+    fit_turntable,
+    reread_marks,
+    reread_yaw,
 )
+from .sequence_model import FitReport, FitState, FitStep, FrameEdges, JointFit, rot_y, wrap_angle, yaw_of
 from .target import TargetSpec
 from .types import (
     AngleCheck,
@@ -105,89 +110,14 @@ __all__ = [
     "TURN_SIGN",
 ]
 
-#: Largest 1-sigma accepted for an optional intrinsic parameter; beyond it the
-#: views do not constrain it and it is kept at its default.
-MAX_STD = {"cx": 2.0, "cy": 2.0, "k1": 0.005, "k2": 0.01}
 #: angle_deg = TURN_SIGN * degrees(theta) with T_cam_table = T_cam_axis . RotY(theta) . Trans(d).
 TURN_SIGN = 1.0
-#: read the marks a second time through the joint turntable model (see _reread_marks).
+#: read the marks a second time through the joint turntable model (see calib.sequence_fit.reread_marks).
 REREAD_MARKS = True
 #: edge points used by the joint fit, all frames together (see calibrate_sequence).
 POINT_BUDGET = 20_000
-#: distortion terms kept only when they lower the RMS edge residual by this fraction.
-MIN_RMS_GAIN = 0.03
-#: a frame whose RMS under the shared model exceeds this many times the median (and BAD_FRAME_MIN_PX)
-#: is dropped (a misdetection, or a camera that moved).
-BAD_FRAME_RATIO = 4.0
-BAD_FRAME_MIN_PX = 1.0
 #: |marks - step| beyond this (deg) is reported per frame.
 ANGLE_CHECK_DEG = 1.0
-#: turntable model accepted when its RMS is within this factor (+0.05 px) of the single-view fits'.
-MODE_RMS_RATIO = 1.3
-#: turntable model considered when the camera centres fit one circle within this fraction of the distance.
-MODE_CENTRE_TOL = 0.02
-
-#: what one frame's single-view solve or mark reading may raise without stopping the sequence
-#: (a degenerate fit deep inside a solver surfaces as ValueError/LinAlgError).
-_FRAME_ERRORS = (CalibrationError, ValueError, np.linalg.LinAlgError)
-
-#: ``reader(frame_index, K, T_cam_table, dist) -> (T_cam_table_aligned, std_deg)``: the pose rotated
-#: about the table normal so that table +X points at the printed 0 deg mark; ``dist`` (OpenCV
-#: coefficients of the raw image, or None); raises CalibrationError.
-AngleReader = Callable[[int, np.ndarray, np.ndarray, "np.ndarray | None"], tuple[np.ndarray, float]]
-
-
-
-# --------------------------------------------------------------------------- initialisation
-def _circle_fit(Ts: list[np.ndarray], theta) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Camera centres on one circle about the axis: ``c_k = RotY(theta_k)^T C - d`` by least squares.
-
-    Returns the solution ``(C, d_x, d_z)``, each frame's distance (mm) from its
-    place on the circle, and which frames the fit used: it is refitted without
-    the frames more than 4x the median (and 1 mm) off (up to twice), as one
-    frame turned upside down, or with a wrong angle, pulls a plain fit off
-    every frame's centre. Fewer than half the frames (or 3) left: the plain fit.
-    """
-    A = np.zeros((3 * len(Ts), 5))
-    b = np.zeros(3 * len(Ts))
-    for k, (T, th) in enumerate(zip(Ts, theta, strict=True)):
-        A[3 * k:3 * k + 3, :3] = rot_y(th).T
-        A[3 * k, 3] = -1.0
-        A[3 * k + 2, 4] = -1.0
-        b[3 * k:3 * k + 3] = camera_centre_table(T)
-    rows = np.ones(len(Ts), bool)
-    for _ in range(3):
-        sol, *_ = np.linalg.lstsq(A[np.repeat(rows, 3)], b[np.repeat(rows, 3)], rcond=None)
-        per_frame = np.linalg.norm((A @ sol - b).reshape(-1, 3), axis=1)
-        keep = per_frame <= max(4.0 * float(np.median(per_frame[rows])), 1.0)
-        if keep.sum() < max(3, len(Ts) // 2) or np.array_equal(keep, rows):
-            break
-        rows = keep
-    return sol, per_frame, rows
-
-
-def _init_turntable(Ts: list[np.ndarray], theta: np.ndarray, yaw_known: bool) -> tuple[np.ndarray, np.ndarray,
-                                                                                          np.ndarray, float]:
-    """``R_cam_axis, t_cam_axis, d_xz`` from single-view poses and angles; and the camera centres' median
-    distance (mm) from the fitted circle (robust to a few bad frames).
-
-    With consistent yaws (marks) the camera centres in the table frame obey the
-    linear model ``c_k = RotY(theta_k)^T C - d`` (C: camera centre in the axis frame).
-    """
-    if yaw_known:
-        M = sum(T[:3, :3] @ rot_y(th).T for T, th in zip(Ts, theta, strict=True))
-        R_ca = project_rotation(M)
-        sol, per_frame, _ = _circle_fit(Ts, theta)
-        C, d = sol[:3], sol[3:]
-        return R_ca, -R_ca @ C, d, float(np.median(per_frame))
-    n = np.mean([T[:3, 1] for T in Ts], axis=0)
-    R_ca = rotation_from_normal(n, x_hint_cam=Ts[0][:3, 0])
-    return R_ca, np.mean([T[:3, 3] for T in Ts], axis=0), np.zeros(2), float("nan")
-
-
-def _mark_weights(stds_deg: Sequence[float], noise_px: float) -> np.ndarray:
-    s = np.radians(np.maximum(np.asarray(stds_deg, float), 0.005))
-    return np.where(np.isfinite(s), max(noise_px, 0.05) / s, 0.0)
 
 
 # --------------------------------------------------------------------------- angle marks
@@ -260,118 +190,16 @@ def _per_frame(observations, spec, intr, pp, reader, failures, max_per_edge, pro
                     try:
                         T, std = reader(k, K, s.T, None)
                         s.T, s.yaw_ok, s.angle_std_deg = np.asarray(T, float), True, float(std)
-                    except _FRAME_ERRORS as exc:
+                    except FRAME_ERRORS as exc:
                         s.angle_error = str(exc)
                 else:
                     s.angle_error = "angle marks not read"
                 singles[k] = s
-            except _FRAME_ERRORS as exc:
+            except FRAME_ERRORS as exc:
                 reasons[k] = str(exc)
         if progress is not None:
             progress(k + 1, n)
     return singles, reasons
-
-
-# --------------------------------------------------------------------------- the models
-def _fit_turntable(singles, idx: list[int], setup: _Setup, theta0: np.ndarray, free_theta: np.ndarray,
-                   yaw_known: bool, noise_px: float) -> tuple[JointFit, float]:
-    """The turntable model on frames ``idx`` from angles ``theta0`` (rad; ``free_theta`` marks those
-    fitted), and the camera centres' median distance (mm) off the initial circle."""
-    frames = [singles[k].edges for k in idx]
-    Ts = [singles[k].T for k in idx]
-    R_ca, t_ca, d, centre_rms = _init_turntable(Ts, theta0, yaw_known)
-    st = replace(setup.state0, R_cam_axis=R_ca, t_cam_axis=t_ca, d_xz=d, theta=theta0.copy(), R=None, t=None)
-    mark_R = [singles[k].T[:3, :3] if singles[k].yaw_ok else None for k in idx]
-    mark_w = _mark_weights([singles[k].angle_std_deg if singles[k].yaw_ok else np.nan for k in idx], noise_px)
-    fit = fit_joint(frames, st, "turntable", setup.base, setup.free_stroke, report=setup.report,
-                    free_theta=free_theta, free_yaw=yaw_known, mark_R=mark_R, mark_w=mark_w)
-    return fit, centre_rms
-
-
-def _fit_handheld(singles, idx: list[int], setup: _Setup) -> JointFit:
-    """The hand-held model on frames ``idx``, from their single-view poses."""
-    frames = [singles[k].edges for k in idx]
-    st = replace(setup.state0, R=[singles[k].T[:3, :3] for k in idx], t=[singles[k].T[:3, 3] for k in idx],
-                 R_cam_axis=None, t_cam_axis=None, d_xz=None, theta=None)
-    return fit_joint(frames, st, "handheld", setup.base, setup.free_stroke, report=setup.report)
-
-
-def _refit(fit: JointFit, free_intr: tuple[str, ...], state: FitState | None = None, report: FitReport | None = None,
-           stage: str = "") -> JointFit:
-    p = fit.problem
-    problem = JointProblem(p.frames, fit.state if state is None else state, free_intr, p.free_stroke, p.model,
-                           free_theta=p.free_theta, free_yaw=p.free_yaw, mark_R=p.mark_R, mark_w=p.mark_w)
-    return solve_joint(problem, robust=False, report=report, stage=stage)
-
-
-def _extend(fit: JointFit, base: tuple[str, ...], extra: tuple[str, ...], notes: dict,
-            report: FitReport | None = None) -> JointFit:
-    """Free ``extra`` intrinsics too, keeping those the data constrain (std <= MAX_STD).
-
-    The least constrained one (largest std / MAX_STD) is dropped and the rest
-    refitted until all pass: freeing k2 can make k1 look unconstrained only
-    because the two trade off.
-    """
-    left = list(extra)
-    while left:
-        trial = _refit(fit, base + tuple(left), report=report,
-                       stage=f"{fit.problem.model} + {', '.join(left)}")
-        ratio = {n: trial.std[n] / MAX_STD[n] if np.isfinite(trial.std[n]) else np.inf for n in left}
-        worst = max(left, key=lambda n: ratio[n])
-        if ratio[worst] <= 1.0:
-            return trial
-        notes[worst] = (f"not estimated: unconstrained by these views (1 sigma {trial.std[worst]:.3g} > "
-                        f"{MAX_STD[worst]:g}); kept at {'the image centre' if worst in ('cx', 'cy') else '0'}")
-        left.remove(worst)
-    return fit
-
-
-def _add_distortion(fit: JointFit, notes: dict, report: FitReport | None = None) -> JointFit:
-    """Free k1, then k2, each kept only if constrained (``MAX_STD``) and worth it.
-
-    Worth it: the RMS edge residual drops by ``MIN_RMS_GAIN``. A small
-    systematic edge bias (blur, ink spread varying with the ring's image size)
-    is otherwise absorbed by a "significant" k1 of a few 1e-3 that trades
-    against f: on a rendered 36-frame turntable without distortion k1 came out
-    +0.0027 +- 0.0003 and moved f by 0.06 % without lowering the RMS; a real
-    k1 = -0.1 lowers it by ~20 % at 0.15 px noise.
-    """
-    cur = fit.problem.free_intr
-    for k in ("k1", "k2"):
-        trial = _extend(fit, cur, (k,), notes, report)
-        if k not in trial.problem.free_intr:
-            if k == "k1":
-                notes["k2"] = "not estimated: k1 is not"
-            return fit
-        if trial.rms_px > (1.0 - MIN_RMS_GAIN) * fit.rms_px:
-            notes[k] = (f"not estimated: it would lower the RMS only from {fit.rms_px:.4f} to "
-                        f"{trial.rms_px:.4f} px (less than {100 * MIN_RMS_GAIN:.0f} %)")
-            if k == "k1":
-                notes["k2"] = "not estimated: k1 is not"
-            return fit
-        fit, cur = trial, cur + (k,)
-    return fit
-
-
-def _choose_mode(mode, singles, ok, angled, fit_tt, centre_off, distance):
-    """'turntable' or 'handheld', and why (medians over frames: a few bad frames do not decide)."""
-    if mode != "auto":
-        return mode, f"--mode {mode}"
-    if len(ok) < 3:
-        return "handheld", f"only {len(ok)} calibrated frame(s): no turntable model"
-    if len(angled) < 3:
-        return "handheld", "turntable angles unknown (angle marks unreadable, no step given)"
-    if np.isfinite(centre_off) and centre_off > MODE_CENTRE_TOL * distance:
-        return "handheld", (f"camera centres do not lie on one circle about an axis "
-                            f"(median {centre_off:.1f} mm off at {distance:.0f} mm)")
-    if fit_tt is None:
-        return "handheld", "turntable fit failed"
-    single = float(np.median([singles[k].rms_px for k in angled]))
-    joint = float(np.median(fit_tt.rms_per_frame))
-    if joint > MODE_RMS_RATIO * single + 0.05:
-        return "handheld", f"turntable model's median frame RMS {joint:.3f} px vs single views' {single:.3f} px"
-    return "turntable", (f"fixed camera: turntable model's median frame RMS {joint:.3f} px vs single views' "
-                         f"{single:.3f} px, camera centres on one circle (median {centre_off:.2f} mm off)")
 
 
 # --------------------------------------------------------------------------- public entry point
@@ -490,19 +318,6 @@ class _Request:
 
 
 @dataclass(frozen=True)
-class _Setup:
-    """What every fit of one sequence shares: frame names, the step (None: the marks), the starting
-    state, the intrinsics always free (``base``), whether the stroke is, and the progress report."""
-
-    names: list[str]
-    step_deg: float | None
-    state0: FitState
-    base: tuple[str, ...]
-    free_stroke: bool
-    report: FitReport | None = None
-
-
-@dataclass(frozen=True)
 class _ModelFit:
     """A fitted model (:func:`_fit_model`): the mode chosen and why, its fit, the frames it used (indices
     into the sequence), the marks-vs-step checks, the camera centres' median distance off the turntable
@@ -531,13 +346,13 @@ def _calibrate_from_singles(singles, reasons, ok, req: _Request) -> SequenceCali
     stroke0 = float(np.median([singles[k].stroke_mm for k in ok])) if free_stroke else 0.0
     state0 = FitState(K=K0, dist=np.zeros(5), stroke=stroke0)
     step_deg, step_note = _step_or_marks(singles, ok, req.names, req.step_deg)
-    setup = _Setup(names=req.names, step_deg=step_deg, state0=state0, base=base, free_stroke=free_stroke,
-                   report=report)
+    setup = FitSetup(names=req.names, step_deg=step_deg, state0=state0, base=base, free_stroke=free_stroke,
+                     report=report)
     model = _fit_model(singles, ok, req.mode, setup)
     if req.mode == "auto" and model.mode == "handheld":
         model = _retry_turntable(singles, reasons, ok, setup, model)
         ok = [k for k in ok if singles[k] is not None]
-    bad = _bad_frames(model.fit, model.used)
+    bad = bad_frames(model.fit, model.used)
     if bad and len(model.used) - len(bad) >= 2:
         for k, msg in bad.items():
             singles[k], reasons[k] = None, msg
@@ -557,18 +372,18 @@ def _calibrate_from_singles(singles, reasons, ok, req: _Request) -> SequenceCali
                                         "kept at the image centre")
         else:
             extra += ["cx", "cy"]
-        fit = _extend(fit, base, tuple(extra), notes, report)
+        fit = extend_intrinsics(fit, base, tuple(extra), notes, report)
         if req.distortion == "auto":
-            fit = _add_distortion(fit, notes, report)
+            fit = add_distortion(fit, notes, report)
         else:
             notes["distortion"] = "not estimated (distortion='none')"
     else:
         notes["intrinsics"] = "given: edges undistorted with them, K kept"
     if req.reader is not None and REREAD_MARKS:
         if chosen == "turntable":
-            fit = _reread_marks(fit, used, req.reader, report)
+            fit = reread_marks(fit, used, req.reader, report)
         else:
-            _reread_yaw(fit, used, singles, req.reader)
+            reread_yaw(fit, used, singles, req.reader)
     why = f"{step_note}; {model.why}" if step_note else model.why
     return _result(replace(model, fit=fit, why=why), singles, reasons, req, notes,
                    warnings=(step_note,) if step_note else ())
@@ -601,11 +416,11 @@ def _step_or_marks(singles, ok, names, step_deg) -> tuple[float | None, str]:
                   f"(they read {read:.1f}° per frame): the marks were used instead of the step")
 
 
-def _retry_turntable(singles, reasons, ok, setup: _Setup, first: _ModelFit) -> _ModelFit:
+def _retry_turntable(singles, reasons, ok, setup: FitSetup, first: _ModelFit) -> _ModelFit:
     """Auto mode chose hand-held: is it one odd frame (upside down, the camera bumped)?
 
     The frames whose camera centre lies far off the circle the others share
-    (:func:`_circle_fit`; at most a tenth of them, at least one) are left out
+    (:func:`circle_fit`; at most a tenth of them, at least one) are left out
     and the mode chosen again. If the rest is a turntable sequence, they are
     marked as not calibrated with the reason and the turntable model is kept;
     otherwise the first, hand-held, result stands, and its reason says that
@@ -616,7 +431,7 @@ def _retry_turntable(singles, reasons, ok, setup: _Setup, first: _ModelFit) -> _
     if len(angled) < 4:
         return first
     theta_all, _, _ = _initial_angles(singles, angled, setup.names, setup.step_deg)
-    _, per_frame, rows = _circle_fit([singles[k].T for k in angled], [theta_all[k] for k in angled])
+    _, per_frame, rows = circle_fit([singles[k].T for k in angled], [theta_all[k] for k in angled])
     odd = [k for k, r in zip(angled, rows, strict=True) if not r]
     if odd and len(odd) <= max(1, len(angled) // 10):
         rest = [k for k in ok if k not in odd]
@@ -633,7 +448,7 @@ def _retry_turntable(singles, reasons, ok, setup: _Setup, first: _ModelFit) -> _
                                            if len(angled) >= 3 else ""))
 
 
-def _fit_model(singles, ok, mode: str, setup: _Setup) -> _ModelFit:
+def _fit_model(singles, ok, mode: str, setup: FitSetup) -> _ModelFit:
     """Fit the turntable model where possible, choose the mode, fit the handheld model if chosen."""
     step_deg = setup.step_deg
     have_step = step_deg is not None
@@ -649,66 +464,16 @@ def _fit_model(singles, ok, mode: str, setup: _Setup) -> _ModelFit:
         yaw_known = any(singles[k].yaw_ok for k in angled)
         theta0 = np.array([theta_all[k] for k in angled])
         try:
-            fit_tt, centre_rms = _fit_turntable(singles, angled, setup, theta0, free_theta, yaw_known, rms_pooled)
+            fit_tt, centre_rms = fit_turntable(singles, angled, setup, theta0, free_theta, yaw_known, rms_pooled)
         except (np.linalg.LinAlgError, ValueError) as exc:
             log.warning("turntable fit failed: %s", exc)
-    chosen, why = _choose_mode(mode, singles, ok, angled, fit_tt, centre_rms, distance)
+    chosen, why = choose_mode(mode, singles, ok, angled, fit_tt, centre_rms, distance)
     if chosen == "turntable":
         if fit_tt is None:
             raise CalibrationError("turntable model could not be fitted")
         return _ModelFit(chosen, why, fit_tt, angled, checks, centre_rms, rms_pooled)
-    fit = _fit_handheld(singles, ok, setup)
+    fit = fit_handheld(singles, ok, setup)
     return _ModelFit(chosen, why, fit, ok, checks, centre_rms, rms_pooled)
-
-
-def _bad_frames(fit: JointFit, used: list[int]) -> dict[int, str]:
-    """Frames whose edge RMS under the shared model exceeds ``BAD_FRAME_RATIO`` x the median (and 1 px)."""
-    r = fit.rms_per_frame
-    med = float(np.median(r))
-    lim = max(BAD_FRAME_RATIO * med, BAD_FRAME_MIN_PX)
-    return {used[i]: f"does not fit the shared camera: RMS {r[i]:.2f} px (median {med:.2f} px)"
-            for i in np.flatnonzero(r > lim)}
-
-
-def _reread_marks(fit: JointFit, used: list[int], reader: AngleReader, report: FitReport | None = None) -> JointFit:
-    """Read the marks again through the joint model's camera and poses, and refit.
-
-    The first reading went through each frame's single-view ``f`` and normal;
-    the joint ones are better, and so is the rectified mark track.
-    """
-    p, st = fit.problem, fit.state
-    Ts = st.poses()
-    mark_R, w = list(p.mark_R), p.mark_w.copy()
-    for i, k in enumerate(used):
-        if mark_R[i] is None:
-            continue
-        try:
-            T, std = reader(k, st.K, Ts[i], st.dist)
-        except _FRAME_ERRORS:
-            continue  # keep the first reading
-        mark_R[i] = np.asarray(T, float)[:3, :3]
-        w[i] = _mark_weights([std], fit.rms_px)[0]
-    prob = JointProblem(p.frames, st, p.free_intr, p.free_stroke, p.model, free_theta=p.free_theta,
-                        free_yaw=p.free_yaw, mark_R=mark_R, mark_w=w)
-    return solve_joint(prob, robust=False, report=report, stage="turntable, marks read again")
-
-
-def _reread_yaw(fit: JointFit, used: list[int], singles, reader: AngleReader) -> None:
-    """Handheld: set each frame's rotation about the normal from the marks read through the final camera.
-
-    The rings do not see it, so the fit kept the single-view reading, taken
-    through that frame's own f and without the distortion.
-    """
-    st = fit.state
-    assert st.R is not None and st.t is not None  # handheld
-    for i, k in enumerate(used):
-        if not singles[k].yaw_ok:
-            continue
-        try:
-            T, _ = reader(k, st.K, make_T(st.R[i], st.t[i]), st.dist)
-        except _FRAME_ERRORS:
-            continue
-        st.R[i] = np.asarray(T, float)[:3, :3]
 
 
 def _initial_angles(singles, angled, names, step_deg):
