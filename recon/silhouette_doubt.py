@@ -27,7 +27,7 @@ import numpy as np
 from scipy.ndimage import binary_dilation
 
 __all__ = ["Plate", "Evidence", "doubtful_pixels", "texture_match", "colour_dist", "plate_envelope", "range_dist",
-           "shadow_dist", "colour_set", "in_set", "MAJOR_SHARE", "doubt_joined"]
+           "shadow_dist", "colour_set", "in_set", "MAJOR_SHARE", "doubt_joined", "doubt_across"]
 
 
 @dataclass(frozen=True)
@@ -183,3 +183,25 @@ def doubt_joined(img: np.ndarray, mask: np.ndarray, doubtful: np.ndarray, paper:
     keep = np.unique(lab[(cv2.dilate(mask.astype(np.uint8), k3) > 0) & smooth])
     grown = np.isin(lab, keep[keep > 0])
     return (cv2.dilate((grown | mask).astype(np.uint8), k3) > 0) & doubtful
+
+
+def doubt_across(mask: np.ndarray, joined: np.ndarray, doubtful: np.ndarray, unvouched: np.ndarray) -> np.ndarray:
+    """(h, w) bool: doubtful pixels that no plate vouches for, in components touching ``mask | joined``.
+
+    :func:`doubt_joined` stops at edges. Beyond one, what the room plate
+    explains only because it covers the same pixels in every frame (a static
+    object part: the lip of a body of revolution, a head over the axis, lit
+    brighter than any colour of the room) is not vouched for: ``unvouched``
+    is where no table plate is trusted (the ray misses the table plate's disc)
+    and the room plate is trusted only in the room's own colours (see
+    :class:`recon.silhouette_plates.Plates`). Such components touching what
+    a frame already holds are candidates; :func:`recon.silhouettes.estimate_silhouettes`
+    keeps them where a fifth of the views or more agree (``ACROSS_SHARE``): a static part
+    touches the object in every view, a poster behind it only while the
+    object turns past it.
+    """
+    k3 = np.ones((3, 3), np.uint8)
+    cand = doubtful & unvouched & ~joined & ~mask
+    n, lab = cv2.connectedComponents(cand.astype(np.uint8), connectivity=8)
+    touch = np.unique(lab[(cv2.dilate((joined | mask).astype(np.uint8), k3) > 0) & cand])
+    return np.isin(lab, touch[touch > 0])

@@ -222,6 +222,16 @@ class Plates:
         trust &= below_horizon(self.K, T, self.box, size_hw)
         return Plate(table, lo, hi, trust, trust)
 
+    def plate_in_frame(self, T: np.ndarray, size_hw) -> np.ndarray:
+        """(h, w) bool: the pixels of frame ``T``'s box whose rays meet the plane on the table plate's disc."""
+        h, w = size_hw
+        n = self.table.shape[0]
+        c = (n - 1) / 2.0
+        ii, jj = np.mgrid[0:n, 0:n]
+        disc = (np.hypot(ii - c, jj - c) <= self.plane_radius * PLANE_PX_PER_MM).astype(np.uint8)
+        on = cv2.warpPerspective(disc, self._to_box(T), (w, h), flags=cv2.INTER_NEAREST, borderValue=0) > 0
+        return on & below_horizon(self.K, T, self.box, size_hw)
+
     def island_in_frame(self, T: np.ndarray, size_hw) -> np.ndarray:
         """(h, w) bool: the pixels of frame ``T``'s box that show an untrusted island of the table plate
         (:func:`untrust_enclosed`): no plate explains them, the room plate neither."""
