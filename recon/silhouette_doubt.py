@@ -27,7 +27,7 @@ import numpy as np
 from scipy.ndimage import binary_dilation
 
 __all__ = ["Plate", "Evidence", "doubtful_pixels", "texture_match", "colour_dist", "plate_envelope", "range_dist",
-           "shadow_dist", "colour_set", "in_set", "MAJOR_SHARE", "doubt_joined", "doubt_across"]
+           "shadow_dist", "colour_set", "in_set", "MAJOR_SHARE", "doubt_joined", "doubt_across", "reach"]
 
 
 @dataclass(frozen=True)
@@ -185,8 +185,9 @@ def doubt_joined(img: np.ndarray, mask: np.ndarray, doubtful: np.ndarray, paper:
     return (cv2.dilate((grown | mask).astype(np.uint8), k3) > 0) & doubtful
 
 
-def doubt_across(mask: np.ndarray, joined: np.ndarray, doubtful: np.ndarray, unvouched: np.ndarray) -> np.ndarray:
-    """(h, w) bool: doubtful pixels that no plate vouches for, in components touching ``mask | joined``.
+def doubt_across(mask: np.ndarray, joined: np.ndarray, doubtful: np.ndarray, unvouched: np.ndarray,
+                 gap_px: int = 1) -> np.ndarray:
+    """(h, w) bool: doubtful pixels that no plate vouches for, in components reaching ``mask | joined``.
 
     :func:`doubt_joined` stops at edges. Beyond one, what the room plate
     explains only because it covers the same pixels in every frame (a static
@@ -194,14 +195,33 @@ def doubt_across(mask: np.ndarray, joined: np.ndarray, doubtful: np.ndarray, unv
     brighter than any colour of the room) is not vouched for: ``unvouched``
     is where no table plate is trusted (the ray misses the table plate's disc)
     and the room plate is trusted only in the room's own colours (see
-    :class:`recon.silhouette_plates.Plates`). Such components touching what
-    a frame already holds are candidates; :func:`recon.silhouettes.estimate_silhouettes`
-    keeps them where a fifth of the views or more agree (``ACROSS_SHARE``): a static part
-    touches the object in every view, a poster behind it only while the
-    object turns past it.
+    :class:`recon.silhouette_plates.Plates`). Such components within
+    ``gap_px`` of what the frame already holds, or of components so reached
+    (:func:`reach`: a head's lit half across a shaded neck of the wall's grey,
+    its top across the terminator's band), are candidates;
+    :func:`recon.silhouettes.estimate_silhouettes` keeps them where a fifth
+    of the views or more agree: a static part reaches the object in every
+    view, a poster behind it only while the object turns past it.
     """
-    k3 = np.ones((3, 3), np.uint8)
     cand = doubtful & unvouched & ~joined & ~mask
+    return reach(cand, joined | mask, gap_px)
+
+
+def reach(cand: np.ndarray, base: np.ndarray, gap_px: int, rounds: int = 4) -> np.ndarray:
+    """(h, w) bool: the components of ``cand`` within ``gap_px`` of ``base`` or of components so reached."""
     n, lab = cv2.connectedComponents(cand.astype(np.uint8), connectivity=8)
-    touch = np.unique(lab[(cv2.dilate((joined | mask).astype(np.uint8), k3) > 0) & cand])
-    return np.isin(lab, touch[touch > 0])
+    if n <= 1:
+        return np.zeros_like(cand)
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap_px + 1, 2 * gap_px + 1))
+    kept = np.zeros(n, bool)
+    front = base
+    for _ in range(rounds):
+        near = cv2.dilate(front.astype(np.uint8), k) > 0
+        new = np.unique(lab[near & cand])
+        new = new[(new > 0) & ~kept[new]]
+        if not len(new):
+            break
+        kept[new] = True
+        front = np.isin(lab, new)
+    return kept[lab]
+

@@ -54,9 +54,10 @@ of its colour lies beyond its outline's edge (a whole wall left unknown was
 never carved above the object). Beyond an edge, doubtful pixels that no
 plate vouches for (a static part over the axis: a vase's lip, a figure's
 head, which the room plate holds in every frame) are unknown too where they
-touch the object in a fifth of the views or more
-(:func:`recon.silhouette_doubt.doubt_across`; a poster behind the object
-touches it only while the object turns past). In a ``"conservative"`` frame,
+reach the object (within 0.5 % of the image diagonal) in a fifth of the
+views or more (:func:`recon.silhouette_doubt.doubt_across`; a poster behind
+the object reaches it only while the object turns past), with the doubtful
+gaps between them and the object closed. In a ``"conservative"`` frame,
 and in every frame of a sequence a quarter of whose frames are conservative,
 the doubtful pixels are judged without trusting the mask's colours or a room
 plate the object may have polluted. Carving with ``mask | unknown`` rejects a voxel
@@ -96,6 +97,7 @@ from .silhouette_doubt import (
     doubtful_pixels,
     in_set,
     range_dist,
+    reach,
     shadow_dist,
     texture_match,
 )
@@ -182,6 +184,7 @@ def _check_inputs(images_rgb, K, T_cam_table):
 
 SEQUENCE_DOUBT = 0.25  # this share of the frames conservative: judge every frame's doubt strictly
 ACROSS_SHARE = 0.2  # doubt_across: kept where at least this share of the views holds it
+ACROSS_GAP = 0.005  # ... and reaching the object within this share of the image diagonal (4 px at 640 x 480)
 _PLAIN_ROOM = 0.05  # a room whose colours fill less than this share of the RGB cube is "plain"
 
 
@@ -534,6 +537,7 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
                                        border, region_px, (W, H))
     status = fill_gaps(status, camera_azimuths_deg(T))
     across = np.zeros_like(unknown)
+    gap = max(2, round(ACROSS_GAP * math.hypot(W, H)))  # doubt_across: reach across a neck's shaded gap
     used = [i for i in range(V) if status[i].startswith("conservative") or status[i] == "ok"]
     # a sequence with many frames in doubt is in doubt as a whole: which of its frames pass the check is
     # chance (a static white vase on a light wall: 12 or 33 of 36 frames at 48-50 % outline support,
@@ -543,19 +547,24 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
         o = outs[i]
         doubtful = o.doubtful_strict if in_doubt or status[i].startswith("conservative") else o.doubtful
         unknown[(i, *box)] = doubt_joined(crops[i], o.mask, doubtful, o.paper, tau)
-        across[(i, *box)] = doubt_across(o.mask, unknown[(i, *box)], doubtful, o.unvouched)
-    if used:  # static parts across an edge: where they touch the object in enough views (doubt_across)
+        across[(i, *box)] = doubt_across(o.mask, unknown[(i, *box)], doubtful, o.unvouched, gap)
+    if used:  # static parts across an edge: where they reach the object in enough views (doubt_across)
         often = across[used].mean(axis=0) >= ACROSS_SHARE
         k3 = np.ones((3, 3), np.uint8)
+        kc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap + 1, 2 * gap + 1))
         for i in used:
             cand = across[i] & often
             if not cand.any():
                 continue
-            # what still touches the frame's object, then one pixel further: their outline is an edge,
-            # its blended pixels are neither side's (doubt_joined)
-            n, lab = cv2.connectedComponents(cand.astype(np.uint8), connectivity=8)
-            near = cv2.dilate((masks[i] | unknown[i]).astype(np.uint8), k3) > 0
-            touch = np.unique(lab[near & cand])
-            kept = np.isin(lab, touch[touch > 0])
-            unknown[i] |= (cv2.dilate(kept.astype(np.uint8), k3) > 0) & union & ~masks[i]
+            base = masks[i] | unknown[i]
+            kept = reach(cand, base, gap)
+            # one pixel further (their outline is an edge, its blended pixels are neither side's: doubt_joined),
+            # and the doubtful gaps between them and the object closed
+            doubtful = np.zeros_like(base)
+            o = outs[i]
+            doubtful[box] = o.doubtful_strict if in_doubt or status[i].startswith("conservative") else o.doubtful
+            grown = base | (cv2.dilate(kept.astype(np.uint8), k3) > 0)
+            closed = cv2.morphologyEx(grown.astype(np.uint8), cv2.MORPH_CLOSE, kc) > 0
+            near = cv2.dilate(kept.astype(np.uint8), kc) > 0
+            unknown[i] |= (grown | (closed & doubtful & near)) & union & ~masks[i]
     return SilhouetteResult(masks=masks, unknown=unknown, quality=quality, status=status)

@@ -366,6 +366,24 @@ def test_doubt_joined_keeps_a_shaded_side_and_stops_at_the_wall():
     assert not (unknown & mask).any()
 
 
+def test_reach_crosses_narrow_gaps_in_chains_and_stops_at_wide_ones():
+    """A head above a shaded neck: its lower half 3 px above the body, its upper half 2 px above that
+    (a terminator band of the wall's grey between them): both reached with a 4 px gap, in chain; a
+    poster 12 px to the side is not, and nothing is reached with a 1 px gap."""
+    from recon.silhouette_doubt import reach
+
+    base = np.zeros((60, 60), bool)
+    base[40:, 20:40] = True  # the body
+    cand = np.zeros_like(base)
+    cand[30:37, 22:38] = True  # the head's lower half, rows 37-39 the neck's gap
+    cand[20:28, 22:38] = True  # its upper half, rows 28-29 the band
+    cand[30:50, 52:58] = True  # a poster, 12 px right of the body
+    got = reach(cand, base, 4)
+    assert got[30:37, 22:38].all() and got[20:28, 22:38].all()
+    assert not got[:, 50:].any() and not (got & ~cand).any()
+    assert not reach(cand, base, 1).any()
+
+
 def test_untrust_enclosed_drops_plain_islands_only():
     """The table plate of a surface turning with the table above the plane (a white plinth's top)
     is trusted and has the paper's colour, but an untrusted band (its edges' parallax) encloses it:
