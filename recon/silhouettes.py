@@ -58,7 +58,7 @@ reach the object (within 0.5 % of the image diagonal) in a fifth of the
 views or more (:func:`recon.silhouette_doubt.doubt_across`; a poster behind
 the object reaches it only while the object turns past), with the doubtful
 gaps between them and the object closed. In a ``"conservative"`` frame,
-and in every frame of a sequence a quarter of whose frames are conservative,
+and in every frame of a sequence with two or more conservative frames,
 the doubtful pixels are judged without trusting the mask's colours or a room
 plate the object may have polluted. Carving with ``mask | unknown`` rejects a voxel
 only where a view is sure. Each frame is checked (empty, touching the image
@@ -182,7 +182,7 @@ def _check_inputs(images_rgb, K, T_cam_table):
     return imgs, as_K(K), as_poses(T_cam_table, imgs.shape[0])
 
 
-SEQUENCE_DOUBT = 0.25  # this share of the frames conservative: judge every frame's doubt strictly
+SEQUENCE_DOUBT = 2  # this many frames conservative: judge every frame's doubt strictly
 ACROSS_SHARE = 0.2  # doubt_across: kept where at least this share of the views holds it
 ACROSS_GAP = 0.005  # ... and reaching the object within this share of the image diagonal (4 px at 640 x 480)
 _PLAIN_ROOM = 0.05  # a room whose colours fill less than this share of the RGB cube is "plain"
@@ -539,10 +539,11 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
     across = np.zeros_like(unknown)
     gap = max(2, round(ACROSS_GAP * math.hypot(W, H)))  # doubt_across: reach across a neck's shaded gap
     used = [i for i in range(V) if status[i].startswith("conservative") or status[i] == "ok"]
-    # a sequence with many frames in doubt is in doubt as a whole: which of its frames pass the check is
-    # chance (a static white vase on a light wall: 12 or 33 of 36 frames at 48-50 % outline support,
-    # from a 0.1 % change of the focal length)
-    in_doubt = sum(s.startswith("conservative") for s in status) >= max(2, SEQUENCE_DOUBT * V)
+    # a sequence with frames in doubt is in doubt as a whole: which of its frames pass the check is chance
+    # (a static white vase on a light wall: 2, 12 or 33 of 36 frames under 50 % outline support, from a
+    # 0.1 % change of the focal length or of a table-plate texel's trust), and where an ok frame's doubt
+    # trusts its mask's colours, the vase's shaded base, missing from them, was carved hollow
+    in_doubt = sum(s.startswith("conservative") for s in status) >= SEQUENCE_DOUBT
     for i in used:
         o = outs[i]
         doubtful = o.doubtful_strict if in_doubt or status[i].startswith("conservative") else o.doubtful
