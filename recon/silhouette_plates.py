@@ -18,7 +18,6 @@ from typing import cast
 
 import cv2
 import numpy as np
-from scipy.ndimage import binary_fill_holes
 
 from calib.camera import plane_homography
 
@@ -160,11 +159,7 @@ def untrust_enclosed(trust: np.ndarray, plate: np.ndarray, tau: float) -> np.nda
     texture (grey-level 3 x 3 spread under ``2 tau`` on most of it) the band
     encloses are no longer trusted: a view then tells them from the paper only
     by what joins them to the mask. An island showing printed ink (the ring,
-    the marks) is paper seen through a gap of the object and keeps its trust,
-    and so does a ring of paper around an object's foot, seen from the near
-    side only: it encloses the footprint that every view has hidden
-    (untrusted texels of more than half its own area), where a plinth's top
-    encloses only what stands on it.
+    the marks) is paper seen through a gap of the object and keeps its trust.
     """
     t = (trust > 0).astype(np.uint8)
     n, lab = cv2.connectedComponents(t, connectivity=4)
@@ -181,15 +176,6 @@ def untrust_enclosed(trust: np.ndarray, plate: np.ndarray, tau: float) -> np.nda
     ink_share = np.bincount(lab.ravel(), weights=inked.ravel(), minlength=n) / np.maximum(sizes, 1)
     keep = outer | (ink_share > 0.1)
     keep[0] = False
-    # paper around an object's foot, seen from the near side only, is a ring around the hidden footprint:
-    # it encloses untrusted texels of more than half its own area (a vase on green paper: 0.6-0.8); a
-    # plinth's top encloses only what stands on it (the white figure's: 0.05)
-    stats = cv2.connectedComponentsWithStats(t, connectivity=4)[2]
-    for k in np.flatnonzero(~keep[1:]) + 1:
-        x, y, w, h = stats[k, :4]
-        c = lab[y:y + h, x:x + w] == k
-        if (binary_fill_holes(c) & ~c).sum() > 0.5 * sizes[k]:
-            keep[k] = True
     return (keep[lab] & (t > 0)).astype(np.uint8)
 
 

@@ -411,27 +411,3 @@ def test_untrust_enclosed_drops_plain_islands_only():
     outside = trust.astype(bool).copy()
     outside[plain] = False
     assert out[outside].all()  # the paper around keeps its trust
-
-
-def test_untrust_enclosed_keeps_the_paper_ring_around_a_hidden_footprint():
-    """Around a vase's foot the paper is seen from the near side only: trusted, plain, and enclosed by
-    the far-side views' untrusted band, like a plinth's top, but it is a ring around the footprint the
-    object hides from every view (untrusted texels of more than half its own area): it keeps its trust.
-    A plinth's top encloses only what stands on it and loses it."""
-    from recon.silhouette_plates import untrust_enclosed
-
-    n = 120
-    plate = np.full((n, n, 3), 90, np.uint8)  # a plain green-grey ground: no ink anywhere near
-    ii, jj = np.mgrid[0:n, 0:n]
-    r = np.hypot(ii - 40, jj - 40)
-    trust = np.ones((n, n), np.uint8)
-    trust[(r < 28) & (r >= 22)] = 0  # the far-side views' band
-    trust[r < 14] = 0  # the footprint, hidden from every view
-    ring = (r >= 15) & (r < 21)
-    trust[80:110, 60:110] = 0  # a plinth's parallax band
-    top = (slice(84, 106), slice(64, 106))
-    trust[top] = 1
-    trust[92:96, 80:84] = 0  # a figure's foot on it
-    out = untrust_enclosed(trust, plate, tau=6.0)
-    assert out[ring].all()
-    assert not out[top].any()
