@@ -263,6 +263,34 @@ def test_white_box_on_white_paper_is_never_eaten():
     assert min((background & visible_ink)[i].sum() / visible_ink[i].sum() for i in kept) >= 0.5
 
 
+def _white_vase_hull(folder, backdrop: str):
+    """Hull (trimesh, table frame, mm) of a 12-frame off-white vase render from ``masks | unknown`` of
+    the automatic silhouettes with the true cameras, its Chamfer distance to the truth in % of the
+    bounding-box diagonal, and the true mesh."""
+    trimesh = pytest.importorskip("trimesh")
+    from scipy.spatial import cKDTree
+
+    from recon.carving import carve_hull
+    from recon.meshing import mesh_from_hull
+    from turntable.cameras_io import read_cameras
+    from turntable.synth import SynthOptions, make_sequence
+
+    make_sequence(folder, SynthOptions(object="vase", backdrop=backdrop, seed=5, width=W, height=H, focal_px=F_PX,
+                                       albedo=(0.85, 0.84, 0.82), frames=12, step_deg=30.0), overwrite=True)
+    seq = read_cameras(folder / "cameras_gt.json")
+    imgs = np.stack([cv2.imread(str(folder / f.image))[..., ::-1] for f in seq.frames])
+    T = np.stack([f.T_cam_table for f in seq.frames])
+    res = estimate_silhouettes(imgs, seq.intrinsics.K, T, SPEC)
+    assert not any(s.startswith("rejected") for s in res.status), res.status
+    hull = carve_hull(res.masks | res.unknown, seq.intrinsics.K, T, radius_mm=SPEC.extent_mm + 5.0, resolution=128)
+    mesh = mesh_from_hull(hull)
+    gt = trimesh.load(folder / "object_gt.ply")
+    m = trimesh.Trimesh(mesh.vertices_table, mesh.faces, process=False)
+    a, b = m.sample(20000, seed=0), gt.sample(20000, seed=0)
+    chamfer = 0.5 * (cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
+    return m, 100.0 * chamfer / float(np.linalg.norm(gt.bounds[1] - gt.bounds[0])), gt
+
+
 def test_white_vase_on_white_paper_keeps_its_hull(tmp_path):
     """A uniformly off-white vase on the white target in a dark room (``turntable synth --albedo
     white``): a body of revolution looks the same in every frame, and the paper behind it is hidden
@@ -271,64 +299,20 @@ def test_white_vase_on_white_paper_keeps_its_hull(tmp_path):
     copy of the paper, was also taken for its shadow. The hull carved from ``masks | unknown`` must
     stay close to the true vase (measured 1.05 % of the bounding box diagonal at this size; before:
     3.5 %, with flakes over the paper)."""
-    trimesh = pytest.importorskip("trimesh")
-    from scipy.spatial import cKDTree
-
-    from recon.carving import carve_hull
-    from recon.meshing import mesh_from_hull
-    from turntable.cameras_io import read_cameras
-    from turntable.synth import SynthOptions, make_sequence
-
-    d = tmp_path / "white_vase"
-    make_sequence(d, SynthOptions(object="vase", backdrop="dark", seed=5, width=W, height=H, focal_px=F_PX,
-                                  albedo=(0.85, 0.84, 0.82), frames=12, step_deg=30.0), overwrite=True)
-    seq = read_cameras(d / "cameras_gt.json")
-    imgs = np.stack([cv2.imread(str(d / f.image))[..., ::-1] for f in seq.frames])
-    T = np.stack([f.T_cam_table for f in seq.frames])
-    K_seq = seq.intrinsics.K
-    res = estimate_silhouettes(imgs, K_seq, T, SPEC)
-    assert not any(s.startswith("rejected") for s in res.status), res.status
-    hull = carve_hull(res.masks | res.unknown, K_seq, T, radius_mm=SPEC.extent_mm + 5.0, resolution=128)
-    mesh = mesh_from_hull(hull)
-    gt = trimesh.load(d / "object_gt.ply")
-    a = trimesh.Trimesh(mesh.vertices_table, mesh.faces, process=False).sample(20000, seed=0)
-    b = gt.sample(20000, seed=0)
-    chamfer = 0.5 * (cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
-    diag = float(np.linalg.norm(gt.bounds[1] - gt.bounds[0]))
-    assert 100.0 * chamfer / diag <= 2.0, 100.0 * chamfer / diag
+    _, chamfer_pct, _ = _white_vase_hull(tmp_path / "white_vase", "dark")
+    assert chamfer_pct <= 2.0, chamfer_pct
 
 
 def test_white_vase_on_a_light_wall_keeps_its_neck_and_lip(tmp_path):
     """The same vase in front of a light grey wall. Static over the axis, its neck and lip are the room
     plate in every frame; the lit lip is brighter than any colour of the room and sits beyond an edge from
     the mask, the shaded neck has the wall's grey. Those parts are unknown where no plate vouches for them
-    and they touch the object in a fifth of the views or more (``doubt_across``), so the hull keeps the
+    and they reach the object in a fifth of the views or more (``doubt_across``), so the hull keeps the
     vase's full height (measured at this size: top 115.6 mm for 110, Chamfer 3.5 % of the diagonal;
     before: the neck carved off at 78.5 mm, 5.3 %)."""
-    trimesh = pytest.importorskip("trimesh")
-    from scipy.spatial import cKDTree
-
-    from recon.carving import carve_hull
-    from recon.meshing import mesh_from_hull
-    from turntable.cameras_io import read_cameras
-    from turntable.synth import SynthOptions, make_sequence
-
-    d = tmp_path / "white_vase_light"
-    make_sequence(d, SynthOptions(object="vase", backdrop="light", seed=5, width=W, height=H, focal_px=F_PX,
-                                  albedo=(0.85, 0.84, 0.82), frames=12, step_deg=30.0), overwrite=True)
-    seq = read_cameras(d / "cameras_gt.json")
-    imgs = np.stack([cv2.imread(str(d / f.image))[..., ::-1] for f in seq.frames])
-    T = np.stack([f.T_cam_table for f in seq.frames])
-    res = estimate_silhouettes(imgs, seq.intrinsics.K, T, SPEC)
-    assert not any(s.startswith("rejected") for s in res.status), res.status
-    hull = carve_hull(res.masks | res.unknown, seq.intrinsics.K, T, radius_mm=SPEC.extent_mm + 5.0, resolution=128)
-    mesh = mesh_from_hull(hull)
-    gt = trimesh.load(d / "object_gt.ply")
-    m = trimesh.Trimesh(mesh.vertices_table, mesh.faces, process=False)
+    m, chamfer_pct, gt = _white_vase_hull(tmp_path / "white_vase_light", "light")
     assert m.bounds[1][1] >= 0.95 * gt.bounds[1][1], m.bounds[1][1]  # the lip is there
-    a, b = m.sample(20000, seed=0), gt.sample(20000, seed=0)
-    chamfer = 0.5 * (cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
-    assert 100.0 * chamfer / float(np.linalg.norm(gt.bounds[1] - gt.bounds[0])) <= 4.5
+    assert chamfer_pct <= 4.5, chamfer_pct
 
 
 def test_doubt_joined_keeps_a_shaded_side_and_stops_at_the_wall():
