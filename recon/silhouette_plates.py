@@ -204,6 +204,10 @@ class Plates:
         # an island is no room's either: a static object there (a body of revolution) is the room plate too
         self.table_island = (self.table_trust > trust).astype(np.uint8)
         self.table_trust = trust
+        n = self.table.shape[0]
+        ii, jj = np.mgrid[0:n, 0:n]
+        self.table_disc = (np.hypot(ii - (n - 1) / 2.0, jj - (n - 1) / 2.0)
+                           <= self.plane_radius * PLANE_PX_PER_MM).astype(np.uint8)  # the plate's disc
         self.K, self.box = K, box
 
     def _to_box(self, T: np.ndarray) -> np.ndarray:
@@ -225,11 +229,7 @@ class Plates:
     def plate_in_frame(self, T: np.ndarray, size_hw) -> np.ndarray:
         """(h, w) bool: the pixels of frame ``T``'s box whose rays meet the plane on the table plate's disc."""
         h, w = size_hw
-        n = self.table.shape[0]
-        c = (n - 1) / 2.0
-        ii, jj = np.mgrid[0:n, 0:n]
-        disc = (np.hypot(ii - c, jj - c) <= self.plane_radius * PLANE_PX_PER_MM).astype(np.uint8)
-        on = cv2.warpPerspective(disc, self._to_box(T), (w, h), flags=cv2.INTER_NEAREST, borderValue=0) > 0
+        on = cv2.warpPerspective(self.table_disc, self._to_box(T), (w, h), flags=cv2.INTER_NEAREST, borderValue=0) > 0
         return on & below_horizon(self.K, T, self.box, size_hw)
 
     def island_in_frame(self, T: np.ndarray, size_hw) -> np.ndarray:

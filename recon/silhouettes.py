@@ -544,11 +544,12 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
     # 0.1 % change of the focal length or of a table-plate texel's trust), and where an ok frame's doubt
     # trusts its mask's colours, the vase's shaded base, missing from them, was carved hollow
     in_doubt = sum(s.startswith("conservative") for s in status) >= SEQUENCE_DOUBT
+    doubtful = {i: outs[i].doubtful_strict if in_doubt or status[i].startswith("conservative") else outs[i].doubtful
+                for i in used}
     for i in used:
         o = outs[i]
-        doubtful = o.doubtful_strict if in_doubt or status[i].startswith("conservative") else o.doubtful
-        unknown[(i, *box)] = doubt_joined(crops[i], o.mask, doubtful, o.paper, tau)
-        across[(i, *box)] = doubt_across(o.mask, unknown[(i, *box)], doubtful, o.unvouched, gap)
+        unknown[(i, *box)] = doubt_joined(crops[i], o.mask, doubtful[i], o.paper, tau)
+        across[(i, *box)] = doubt_across(o.mask, unknown[(i, *box)], doubtful[i], o.unvouched, gap)
     if used:  # static parts across an edge: where they reach the object in enough views (doubt_across)
         often = across[used].mean(axis=0) >= ACROSS_SHARE
         k3 = np.ones((3, 3), np.uint8)
@@ -561,11 +562,10 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
             kept = reach(cand, base, gap)
             # one pixel further (their outline is an edge, its blended pixels are neither side's: doubt_joined),
             # and the doubtful gaps between them and the object closed
-            doubtful = np.zeros_like(base)
-            o = outs[i]
-            doubtful[box] = o.doubtful_strict if in_doubt or status[i].startswith("conservative") else o.doubtful
+            gaps = np.zeros_like(base)
+            gaps[box] = doubtful[i]
             grown = base | (cv2.dilate(kept.astype(np.uint8), k3) > 0)
             closed = cv2.morphologyEx(grown.astype(np.uint8), cv2.MORPH_CLOSE, kc) > 0
-            near = cv2.dilate(kept.astype(np.uint8), kc) > 0
-            unknown[i] |= (grown | (closed & doubtful & near)) & union & ~masks[i]
+            gaps &= closed & (cv2.dilate(kept.astype(np.uint8), kc) > 0)
+            unknown[i] |= (grown | gaps) & union & ~masks[i]
     return SilhouetteResult(masks=masks, unknown=unknown, quality=quality, status=status)
