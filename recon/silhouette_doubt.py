@@ -27,7 +27,8 @@ import numpy as np
 from scipy.ndimage import binary_dilation
 
 __all__ = ["Plate", "Evidence", "doubtful_pixels", "texture_match", "colour_dist", "plate_envelope", "range_dist",
-           "shadow_dist", "colour_set", "in_set", "MAJOR_SHARE", "doubt_joined", "doubt_across", "reach"]
+           "shadow_dist", "colour_set", "in_set", "MAJOR_SHARE", "doubt_joined", "doubt_across", "doubt_unlike",
+           "reach"]
 
 
 @dataclass(frozen=True)
@@ -205,6 +206,23 @@ def doubt_across(mask: np.ndarray, joined: np.ndarray, doubtful: np.ndarray, unv
     """
     cand = doubtful & unvouched & ~joined & ~mask
     return reach(cand, joined | mask, gap_px)
+
+
+def doubt_unlike(mask: np.ndarray, held: np.ndarray, doubtful: np.ndarray, unlike: np.ndarray) -> np.ndarray:
+    """(h, w) bool: doubtful pixels unlike the background, in components touching ``mask | held``.
+
+    :func:`doubt_joined` grows only through smooth pixels, so a thin part of a
+    white object (an arm: its shading turns across a few pixels, every one an
+    edge) or a plinth beyond the shaded line where it meets the legs stays out,
+    and every view that misses it carves it off: the white figure on a light
+    wall lost both arms. ``unlike`` is where the pixel is not the background's
+    own colour: a trusted plate there whose colour it does not have (within
+    ``2 tau``), or no trusted plate and not the room plate's median colour (what
+    the pixel shows in most frames). The wall or the paper the object's colour
+    matches is the background's colour, so these components stop at it, as the
+    smooth growth stops at edges; they are not grown further.
+    """
+    return reach(doubtful & unlike & ~held & ~mask, held | mask, 1, rounds=1)
 
 
 def reach(cand: np.ndarray, base: np.ndarray, gap_px: int, rounds: int = 4) -> np.ndarray:

@@ -57,7 +57,10 @@ head, which the room plate holds in every frame) are unknown too where they
 reach the object (within 0.5 % of the image diagonal) in a fifth of the
 views or more (:func:`recon.silhouette_doubt.doubt_across`; a poster behind
 the object reaches it only while the object turns past), with the doubtful
-gaps between them and the object closed. In a ``"conservative"`` frame,
+gaps between them and the object closed. Last, doubtful pixels unlike the
+background's own colour (a thin arm whose shading turns across it, all
+edge) join where they touch what the frame holds
+(:func:`recon.silhouette_doubt.doubt_unlike`). In a ``"conservative"`` frame,
 and in every frame of a sequence with two or more conservative frames,
 the doubtful pixels are judged without trusting the mask's colours or a room
 plate the object may have polluted. Carving with ``mask | unknown`` rejects a voxel
@@ -94,6 +97,7 @@ from .silhouette_doubt import (
     colour_set,
     doubt_across,
     doubt_joined,
+    doubt_unlike,
     doubtful_pixels,
     in_set,
     range_dist,
@@ -390,6 +394,7 @@ class _FrameOut:
     support: float  # see _outline_support
     paper: np.ndarray  # (h, w) bool: the table plate matches closely (see doubt_joined)
     unvouched: np.ndarray  # (h, w) bool: no plate is trusted there, the room's only in the room's colours
+    unlike: np.ndarray  # (h, w) bool: not the background's colour (see doubt_unlike)
 
 
 def _without(plate: Plate, pixels: np.ndarray) -> Plate:
@@ -429,7 +434,8 @@ def _frame_mask(img, region, base, plates: Plates, T, tau, verified: bool) -> _F
     return _FrameOut(mask, doubtful_pixels(img, mask, region, ev_v, ink, False),
                      doubtful_pixels(img, mask, region, ev_v, ink, True), _outline_support(img, mask, ev, tau),
                      table.trust & (dist[1] < tau) & (dist[5] < 2.0 * tau),
-                     region & ~(room_v.trust | table.trust) & ~plates.plate_in_frame(T, (h, w)))
+                     region & ~(room_v.trust | table.trust) & ~plates.plate_in_frame(T, (h, w)),
+                     (ev_v.trusted & ~ev_v.tight) | (~ev_v.trusted & (dist[4] > 2.0 * tau)))
 
 
 def _noise_tau(samples: np.ndarray) -> float:
@@ -568,4 +574,7 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
             closed = cv2.morphologyEx(grown.astype(np.uint8), cv2.MORPH_CLOSE, kc) > 0
             gaps &= closed & (cv2.dilate(kept.astype(np.uint8), kc) > 0)
             unknown[i] |= (grown | gaps) & union & ~masks[i]
+    for i in used:  # thin parts beyond an edge, unlike the background (doubt_unlike)
+        u = unknown[(i, *box)]
+        u |= doubt_unlike(outs[i].mask, u, doubtful[i], outs[i].unlike)
     return SilhouetteResult(masks=masks, unknown=unknown, quality=quality, status=status)

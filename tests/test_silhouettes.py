@@ -350,6 +350,35 @@ def test_doubt_joined_keeps_a_shaded_side_and_stops_at_the_wall():
     assert not (unknown & mask).any()
 
 
+def test_doubt_unlike_keeps_a_thin_arm_and_stops_at_the_wall():
+    """A white figure's arm, 4 px wide, its shading turning across it (every pixel an edge, so
+    ``doubt_joined`` cannot grow into it), sticks out of the held body over a wall of the figure's
+    grey. The arm's pixels are doubtful and unlike the wall's own colour: unknown. The wall, as
+    doubtful but its plate's colour, is not; nor an unlike blob apart from the body, nor one that
+    touches the body only through the wall."""
+    from recon.silhouette_doubt import doubt_unlike
+
+    h, w = 60, 80
+    mask = np.zeros((h, w), bool)
+    mask[20:60, 30:45] = True  # the body
+    held = np.zeros_like(mask)
+    held[10:20, 32:43] = True  # the head, unknown already
+    arm = np.zeros_like(mask)
+    for r in range(22, 42):  # a diagonal arm from the shoulder down to the left
+        c = 29 - (r - 22) // 2
+        arm[r, c - 3:c + 1] = True
+    blob = np.zeros_like(mask)
+    blob[30:36, 60:66] = True  # unlike the wall, 15 px from the body
+    bridge = np.zeros_like(mask)
+    bridge[50:52, 47:58] = True  # unlike, but 2 px of wall between it and the body
+    doubtful = ~mask & ~held  # the figure's grey is the wall's: all doubtful
+    unlike = arm | blob | bridge
+    got = doubt_unlike(mask, held, doubtful, unlike)
+    assert got[arm].all()
+    assert not (got & ~arm).any()
+    assert not doubt_unlike(mask, held, doubtful, np.zeros_like(mask)).any()  # the wall alone: nothing
+
+
 def test_reach_crosses_narrow_gaps_in_chains_and_stops_at_wide_ones():
     """A head above a shaded neck: its lower half 3 px above the body, its upper half 2 px above that
     (a terminator band of the wall's grey between them): both reached with a 4 px gap, in chain; a
