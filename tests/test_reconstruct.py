@@ -361,8 +361,42 @@ def test_doubtful_pixels_reaching_the_wall_do_not_grow_the_volume(scene, tmp_pat
     args.remove("--masks")
     args.remove(str(scene / "masks"))
     assert main(args) in (0, 3)
-    vol = json.loads((out / "summary.json").read_text())["working_volume"]
+    summary = json.loads((out / "summary.json").read_text())
+    vol = summary["working_volume"]
     assert not vol["grown"] and vol["notes"] and "doubtful" in vol["notes"][0], vol
+    # that doubt ran to the volume's outline in every view: dropped there, the hull is the masks' again
+    assert any("lost the doubtful pixels" in n and "now fits" in n for n in vol["notes"]), vol
+    ref = tmp_path / "ref"
+    assert main(_known_cameras_args(scene, ref, "--max-rejections", "1")) == 0
+    ref_cm3 = json.loads((ref / "summary.json").read_text())["mesh"]["volume_cm3"]
+    assert summary["mesh"]["volume_cm3"] < 1.5 * ref_cm3, (summary["mesh"]["volume_cm3"], ref_cm3)
+
+
+def test_doubt_off_the_outline_drops_only_the_pieces_that_reach_it(scene):
+    """A doubtful band around the object stays; a doubtful piece joined to it that runs up to the top of
+    the volume's image (a wall of the object's grey) goes, in that view only."""
+    import cv2
+
+    from recon.silhouettes import cylinder_region
+    from turntable.stages.volume import WorkingVolume, doubt_off_the_outline
+
+    gt = read_cameras(scene / "cameras_gt.json")
+    K, Ts = gt.intrinsics.K, np.stack([f.T_cam_table for f in gt.frames])[:3]
+    masks = np.stack([cv2.imread(str(p), 0) > 127 for p in sorted((scene / "masks").glob("*.png"))[:3]])
+    vol = WorkingVolume(radius_mm=80.0, height_mm=125.0, max_radius_mm=200.0, max_height_mm=300.0, source="test")
+    region = cylinder_region(K, Ts[1], (640, 480), vol.radius_mm, vol.height_mm)
+    assert region[:3].sum() == 0  # the volume's top is in view (the vase: 110 mm tall)
+    band = np.stack([(cv2.dilate(m.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0) & ~m for m in masks])
+    unknown = band.copy()
+    ys, xs = np.nonzero(masks[1])
+    wall = np.zeros_like(masks[1])
+    wall[:ys.min() + 2, xs.min():xs.max()] = True  # from the object's top up to the image's top
+    unknown[1] |= wall & region
+    got, views = doubt_off_the_outline(masks, unknown, K, Ts, vol)
+    assert views == [1]
+    assert (got[[0, 2]] == unknown[[0, 2]]).all()
+    assert not (got[1] & ~masks[1]).any()  # the band joined the wall: one piece, dropped whole
+    assert not doubt_off_the_outline(masks, band, K, Ts, vol)[1]
 
 
 def test_negative_max_rejections_fails_before_any_work(tmp_path, scene, capsys):

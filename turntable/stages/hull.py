@@ -65,7 +65,7 @@ class HullStage:
 
 def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progress, ws, intr=None) -> HullStage:
     """Silhouettes and hull in a working volume grown until the object fits (or the view ends)."""
-    from .volume import MIN_TOUCH_VIEWS, initial_volume, mask_touches
+    from .volume import MIN_TOUCH_VIEWS, doubt_off_the_outline, initial_volume, mask_touches
 
     H, W = images_rgb[0].shape[:2]
     try:
@@ -120,6 +120,18 @@ def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progres
                 # would chase the doubt to the edge of the view: note it, and keep the volume.
                 doubtful_wall = [f"doubtful silhouette pixels (not the object's sure silhouette) let the hull reach "
                                  f"its {w}" for w, t in zip(("side", "top"), touch, strict=True) if t]
+                # and they ran there in the views: drop, per view, the doubt that reaches the volume's outline
+                unknown, pruned = doubt_off_the_outline(sil.masks[keep], sil.unknown[keep], K, Ts[keep], vol)
+                if pruned:
+                    sil = replace(sil, unknown=sil.unknown.copy())
+                    sil.unknown[keep] = unknown
+                    hull = carve(sil, keep, stage_key(key, "doubt off the outline"), vol)
+                    doubtful_wall.append(f"WARNING: {len(pruned)} view(s) lost the doubtful pixels that ran to the "
+                                         f"working volume's outline (a wall of the object's colour), and the hull "
+                                         + ("still reaches it" if hull.meta["touches_side"] > 0 or
+                                            hull.meta["touches_top"] > 0 else "now fits")
+                                         + "; parts of the object with the wall's colour may be missing (a dark or "
+                                           "coloured backdrop avoids this)")
                 progress.note(f"working volume: {'; '.join(doubtful_wall)}")
                 why = []
         if not why:

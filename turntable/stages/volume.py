@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-__all__ = ["WorkingVolume", "initial_volume", "mask_touches", "MIN_TOUCH_VIEWS"]
+__all__ = ["WorkingVolume", "initial_volume", "mask_touches", "doubt_off_the_outline", "MIN_TOUCH_VIEWS"]
 
 _GROWTH = 1.25  # each step grows the radius by this factor ...
 _MIN_STEP_MM = 10.0  # ... and by at least this much
@@ -125,3 +125,42 @@ def mask_touches(masks: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, vol:
         if np.count_nonzero(touch & ~freed) >= _MIN_TOUCH_PX:
             side.append(i)
     return side, top
+
+
+def doubt_off_the_outline(masks: np.ndarray, unknown: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray,
+                          vol: WorkingVolume) -> tuple[np.ndarray, list[int]]:
+    """``unknown`` less, per view, its pieces (8-connected, off the mask) that run to the volume's image outline.
+
+    Carved from ``masks | unknown``, a hull that reaches the working volume's
+    top or side while the masks fit inside it was grown by doubt, not by the
+    object: a wall of the object's grey joined through a stretch of outline
+    where the object's shade is exactly the wall's (a static white vase on a
+    light wall: the whole wall above it, the hull the volume's full height,
+    22.8 % of the diagonal). Such a piece reaches the outline of the
+    cylinder's image, which the object's own doubtful parts do not. Dropping
+    it may take a part of the object with it (the neck through which the wall
+    joined): the price of not carving a volume-high block.
+
+    Returns ``(unknown, views)``: the pruned unknown pixels and the views that lost any.
+    """
+    from recon.silhouettes import cylinder_region
+
+    masks, unknown = np.asarray(masks, bool), np.asarray(unknown, bool)
+    V, H, W = masks.shape
+    kernel = np.ones((3, 3), np.uint8)
+    inner = np.zeros((H, W), bool)
+    inner[_BAND_PX:H - _BAND_PX, _BAND_PX:W - _BAND_PX] = True
+    out, views = unknown.copy(), []
+    for i in range(V):
+        doubt = unknown[i] & ~masks[i]
+        if not doubt.any():
+            continue
+        region = cylinder_region(K, T_cam_table[i], (W, H), vol.radius_mm, vol.height_mm).astype(np.uint8)
+        band = (region > 0) & (cv2.erode(region, kernel, iterations=_BAND_PX) == 0) & inner
+        n, lab = cv2.connectedComponents(doubt.astype(np.uint8), connectivity=8)
+        hit = np.unique(lab[band & doubt])
+        hit = hit[hit > 0]
+        if len(hit):
+            out[i] &= ~np.isin(lab, hit)
+            views.append(i)
+    return out, views
