@@ -194,15 +194,19 @@ def doubt_across(mask: np.ndarray, joined: np.ndarray, doubtful: np.ndarray, unv
     explains only because it covers the same pixels in every frame (a static
     object part: the lip of a body of revolution, a head over the axis, lit
     brighter than any colour of the room) is not vouched for: ``unvouched``
-    is where no table plate is trusted (the ray misses the table plate's disc)
-    and the room plate is trusted only in the room's own colours (see
+    is where no table plate is trusted (the ray misses the table plate's disc,
+    or meets it where the plate's colour and its shadow's are not the pixel's:
+    a head seen against the table behind the turntable from higher up) and
+    the room plate is trusted only in the room's own colours (see
     :class:`recon.silhouette_plates.Plates`). Such components within
     ``gap_px`` of what the frame already holds, or of components so reached
     (:func:`reach`: a head's lit half across a shaded neck of the wall's grey,
     its top across the terminator's band), are candidates;
     :func:`recon.silhouettes.estimate_silhouettes` keeps them where a fifth
-    of the views or more agree: a static part reaches the object in every
-    view, a poster behind it only while the object turns past it.
+    of the views or more agree, or four in five counting those whose mask
+    holds them: a static part reaches the object in every view (or is in
+    its mask, where it turns off the axis), a poster behind it only while
+    the object turns past it.
     """
     cand = doubtful & unvouched & ~joined & ~mask
     return reach(cand, joined | mask, gap_px)

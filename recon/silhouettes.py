@@ -55,7 +55,8 @@ never carved above the object). Beyond an edge, doubtful pixels that no
 plate vouches for (a static part over the axis: a vase's lip, a figure's
 head, which the room plate holds in every frame) are unknown too where they
 reach the object (within 0.5 % of the image diagonal) in a fifth of the
-views or more (:func:`recon.silhouette_doubt.doubt_across`; a poster behind
+views or more, or in four fifths counting the views whose mask holds them
+(:func:`recon.silhouette_doubt.doubt_across`; a poster behind
 the object reaches it only while the object turns past), with the doubtful
 gaps between them and the object closed. Last, doubtful pixels unlike the
 background's own colour (a thin arm whose shading turns across it, all
@@ -188,8 +189,21 @@ def _check_inputs(images_rgb, K, T_cam_table):
 
 SEQUENCE_DOUBT = 2  # this many frames conservative: judge every frame's doubt strictly
 ACROSS_SHARE = 0.2  # doubt_across: kept where at least this share of the views holds it
+ACROSS_HELD = 0.8  # ... or, with the views whose mask holds it, at least this share
 ACROSS_GAP = 0.005  # ... and reaching the object within this share of the image diagonal (4 px at 640 x 480)
 _PLAIN_ROOM = 0.05  # a room whose colours fill less than this share of the RGB cube is "plain"
+
+
+def static_votes(across: np.ndarray, masks: np.ndarray) -> np.ndarray:
+    """(H, W) bool: where :func:`recon.silhouette_doubt.doubt_across` candidates (V, H, W) are kept.
+
+    A static part reaches the object in every view: across in a fifth of the
+    views or more, or across or in the mask in four fifths (a head that
+    the mask holds wherever it turns off the axis and that is across, beyond
+    the shaded neck, only in the views where it does not); a poster behind
+    the object reaches it only while the object turns past.
+    """
+    return (across.mean(axis=0) >= ACROSS_SHARE) | ((across | masks).mean(axis=0) >= ACROSS_HELD)
 
 
 def _plate_distances(img, room: Plate, table: Plate) -> tuple[np.ndarray, ...]:
@@ -434,7 +448,10 @@ def _frame_mask(img, region, base, plates: Plates, T, tau, verified: bool) -> _F
     return _FrameOut(mask, doubtful_pixels(img, mask, region, ev_v, ink, False),
                      doubtful_pixels(img, mask, region, ev_v, ink, True), _outline_support(img, mask, ev, tau),
                      table.trust & (dist[1] < tau) & (dist[5] < 2.0 * tau),
-                     region & ~(room_v.trust | table.trust) & ~plates.plate_in_frame(T, (h, w)),
+                     # off the table plate's disc, or on it where the plate's colour (or a shadow of it) is not
+                     # the pixel's (a head above the plane, seen against the table behind the turntable)
+                     region & ~(room_v.trust | table.trust)
+                     & ~(plates.plate_in_frame(T, (h, w)) & ((dist[1] < tau) | (dist[3] < tau))),
                      (ev_v.trusted & ~ev_v.tight) | (~ev_v.trusted & (dist[4] > 2.0 * tau)))
 
 
@@ -557,7 +574,7 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
         unknown[(i, *box)] = doubt_joined(crops[i], o.mask, doubtful[i], o.paper, tau)
         across[(i, *box)] = doubt_across(o.mask, unknown[(i, *box)], doubtful[i], o.unvouched, gap)
     if used:  # static parts across an edge: where they reach the object in enough views (doubt_across)
-        often = across[used].mean(axis=0) >= ACROSS_SHARE
+        often = static_votes(across[used], masks[used])
         k3 = np.ones((3, 3), np.uint8)
         kc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap + 1, 2 * gap + 1))
         for i in used:

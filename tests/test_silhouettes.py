@@ -379,6 +379,27 @@ def test_doubt_unlike_keeps_a_thin_arm_and_stops_at_the_wall():
     assert not doubt_unlike(mask, held, doubtful, np.zeros_like(mask)).any()  # the wall alone: nothing
 
 
+def test_static_votes_keep_a_head_the_masks_hold_and_not_a_poster():
+    """36 views. A head pixel: across in 3 views, in the mask in the 30 others (kept: 33 of 36 hold it). A
+    part across in 8 views (kept: a fifth or more). A poster pixel: across in 5 views while the object
+    turns past, in the mask in 10 (not kept: 5 < 7.2 and 15 < 28.8)."""
+    from recon.silhouettes import static_votes
+
+    V = 36
+    across = np.zeros((V, 1, 3), bool)
+    masks = np.zeros_like(across)
+    across[:3, 0, 0] = True
+    masks[6:, 0, 0] = True
+    across[10:18, 0, 1] = True
+    across[:5, 0, 2] = True
+    masks[5:15, 0, 2] = True
+    assert static_votes(across, masks)[0].tolist() == [True, True, False]
+    masks[6:8, 0, 0] = False  # the head held in 31 of 36 views only: 0.86, still kept; in 28 (0.78): not
+    assert static_votes(across, masks)[0, 0]
+    masks[8:11, 0, 0] = False
+    assert not static_votes(across, masks)[0, 0]
+
+
 def test_reach_crosses_narrow_gaps_in_chains_and_stops_at_wide_ones():
     """A head above a shaded neck: its lower half 3 px above the body, its upper half 2 px above that
     (a terminator band of the wall's grey between them): both reached with a 4 px gap, in chain; a
