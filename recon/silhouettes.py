@@ -56,6 +56,7 @@ plate vouches for (a static part over the axis: a vase's lip, a figure's
 head, which the room plate holds in every frame) are unknown too where they
 reach the object (within 0.5 % of the image diagonal) in a fifth of the
 views or more, or in four fifths counting the views whose mask holds them
+(then within 1.5 times that distance: a head beyond a shaded neck)
 (:func:`recon.silhouette_doubt.doubt_across`; a poster behind
 the object reaches it only while the object turns past), with the doubtful
 gaps between them and the object closed. Last, doubtful pixels unlike the
@@ -190,6 +191,7 @@ def _check_inputs(images_rgb, K, T_cam_table):
 SEQUENCE_DOUBT = 2  # this many frames conservative: judge every frame's doubt strictly
 ACROSS_SHARE = 0.2  # doubt_across: kept where at least this share of the views holds it
 ACROSS_HELD = 0.8  # ... or, with the views whose mask holds it, at least this share
+ACROSS_FAR = 1.5  # ... and, where the masks hold them in four views of five, within this many times that distance
 ACROSS_GAP = 0.005  # ... and reaching the object within this share of the image diagonal (4 px at 640 x 480)
 _PLAIN_ROOM = 0.05  # a room whose colours fill less than this share of the RGB cube is "plain"
 
@@ -560,7 +562,9 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
                                        border, region_px, (W, H))
     status = fill_gaps(status, camera_azimuths_deg(T))
     across = np.zeros_like(unknown)
+    across_far = np.zeros_like(unknown)
     gap = max(2, round(ACROSS_GAP * math.hypot(W, H)))  # doubt_across: reach across a neck's shaded gap
+    far = round(ACROSS_FAR * gap)
     used = [i for i in range(V) if status[i].startswith("conservative") or status[i] == "ok"]
     # a sequence with frames in doubt is in doubt as a whole: which of its frames pass the check is chance
     # (a static white vase on a light wall: 2, 12 or 33 of 36 frames under 50 % outline support, from a
@@ -573,23 +577,30 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
         o = outs[i]
         unknown[(i, *box)] = doubt_joined(crops[i], o.mask, doubtful[i], o.paper, tau)
         across[(i, *box)] = doubt_across(o.mask, unknown[(i, *box)], doubtful[i], o.unvouched, gap)
+        across_far[(i, *box)] = doubt_across(o.mask, unknown[(i, *box)], doubtful[i], o.unvouched, far)
     if used:  # static parts across an edge: where they reach the object in enough views (doubt_across)
         often = static_votes(across[used], masks[used])
+        # further from the object only what the masks hold in nearly every view: a head beyond a neck whose
+        # shaded side has the wall's grey for more than the near gap (a poster never gets that far)
+        held = (across_far[used] | masks[used]).mean(axis=0) >= ACROSS_HELD
         k3 = np.ones((3, 3), np.uint8)
-        kc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap + 1, 2 * gap + 1))
         for i in used:
-            cand = across[i] & often
-            if not cand.any():
-                continue
             base = masks[i] | unknown[i]
-            kept = reach(cand, base, gap)
-            # one pixel further (their outline is an edge, its blended pixels are neither side's: doubt_joined),
-            # and the doubtful gaps between them and the object closed
+            grown = base.copy()
             gaps = np.zeros_like(base)
-            gaps[box] = doubtful[i]
-            grown = base | (cv2.dilate(kept.astype(np.uint8), k3) > 0)
-            closed = cv2.morphologyEx(grown.astype(np.uint8), cv2.MORPH_CLOSE, kc) > 0
-            gaps &= closed & (cv2.dilate(kept.astype(np.uint8), kc) > 0)
+            for cand, g in ((across[i] & often, gap), (across_far[i] & held, far)):
+                if not cand.any():
+                    continue
+                kept = reach(cand, base, g)
+                # one pixel further (their outline is an edge, its blended pixels are neither side's:
+                # doubt_joined), and the doubtful gaps between them and the object closed
+                kc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * g + 1, 2 * g + 1))
+                dk = np.zeros_like(base)
+                dk[box] = doubtful[i]
+                more = base | (cv2.dilate(kept.astype(np.uint8), k3) > 0)
+                closed = cv2.morphologyEx(more.astype(np.uint8), cv2.MORPH_CLOSE, kc) > 0
+                gaps |= dk & closed & (cv2.dilate(kept.astype(np.uint8), kc) > 0)
+                grown |= more
             unknown[i] |= (grown | gaps) & union & ~masks[i]
     for i in used:  # thin parts beyond an edge, unlike the background (doubt_unlike)
         u = unknown[(i, *box)]
