@@ -588,6 +588,8 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
             base = masks[i] | unknown[i]
             grown = base.copy()
             gaps = np.zeros_like(base)
+            dk = np.zeros_like(base)
+            dk[box] = doubtful[i]
             for cand, g in ((across[i] & often, gap), (across_far[i] & held, far)):
                 if not cand.any():
                     continue
@@ -595,8 +597,6 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
                 # one pixel further (their outline is an edge, its blended pixels are neither side's:
                 # doubt_joined), and the doubtful gaps between them and the object closed
                 kc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * g + 1, 2 * g + 1))
-                dk = np.zeros_like(base)
-                dk[box] = doubtful[i]
                 more = base | (cv2.dilate(kept.astype(np.uint8), k3) > 0)
                 closed = cv2.morphologyEx(more.astype(np.uint8), cv2.MORPH_CLOSE, kc) > 0
                 gaps |= dk & closed & (cv2.dilate(kept.astype(np.uint8), kc) > 0)
