@@ -205,7 +205,12 @@ def static_votes(across: np.ndarray, masks: np.ndarray) -> np.ndarray:
     the shaded neck, only in the views where it does not); a poster behind
     the object reaches it only while the object turns past.
     """
-    return (across.mean(axis=0) >= ACROSS_SHARE) | ((across | masks).mean(axis=0) >= ACROSS_HELD)
+    return (across.mean(axis=0) >= ACROSS_SHARE) | held_votes(across, masks)
+
+
+def held_votes(across: np.ndarray, masks: np.ndarray) -> np.ndarray:
+    """(H, W) bool: across (V, H, W) or in the mask in at least ``ACROSS_HELD`` of the views."""
+    return (across | masks).mean(axis=0) >= ACROSS_HELD
 
 
 def _plate_distances(img, room: Plate, table: Plate) -> tuple[np.ndarray, ...]:
@@ -582,7 +587,7 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
         often = static_votes(across[used], masks[used])
         # further from the object only what the masks hold in nearly every view: a head beyond a neck whose
         # shaded side has the wall's grey for more than the near gap (a poster never gets that far)
-        held = (across_far[used] | masks[used]).mean(axis=0) >= ACROSS_HELD
+        held = held_votes(across_far[used], masks[used])
         k3 = np.ones((3, 3), np.uint8)
         for i in used:
             base = masks[i] | unknown[i]
