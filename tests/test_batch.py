@@ -34,7 +34,8 @@ from turntable.errors import UserError
 from turntable.synth import SynthOptions, make_sequence
 
 JOB_FLAGS = ["--cameras", "cameras_gt.json", "--masks", "masks", "--resolution", "32", "--no-fusion", "--no-texture"]
-KILL_AFTER_S = 0.5  # into the job: past the worker's start, well before its end (a job takes seconds)
+KILL_AFTER_S = 0.05  # into the job: the marker is written before the reconstruction, which takes 0.3 s or more
+# (at 0.5 s a quick job on a quiet machine had sometimes already finished, and another job's worker was killed)
 
 
 def _render(folder: Path, obj: str, seed: int) -> None:
@@ -51,6 +52,7 @@ def root(tmp_path_factory):
     root = base / "root"
     shutil.copytree(src / "vase", root / "a")
     shutil.copytree(src / "cup", root / "b")
+    (root / "b" / "turntable.toml").write_text("resolution = 48  # a longer job: the test kills it mid-way\n")
     shutil.copytree(src / "vase", root / "c")
     (root / "c" / "turntable.toml").write_text("resolution = 40  # this object's own setting\n")
     broken = root / "d"  # two frames: too few to reconstruct
@@ -60,10 +62,12 @@ def root(tmp_path_factory):
     return root
 
 
-def _kill_first_attempt(marker: Path, killed: list) -> None:
-    """SIGKILL the worker that runs ``marker``'s job, once, mid-job (a worker lost as a node or OOM loses it)."""
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
+def _kill_first_attempt(marker: Path, killed: list, stop: threading.Event) -> None:
+    """SIGKILL the worker that runs ``marker``'s job, once, mid-job (a worker lost as a node or OOM loses it).
+
+    Watches until the batch returns (``stop``), not for a fixed time: on a loaded machine the first workers
+    can take a minute to start."""
+    while not stop.is_set():
         try:
             line = marker.read_text().split()
         except OSError:
@@ -82,7 +86,9 @@ def first(root, tmp_path_factory):
 
     out = tmp_path_factory.mktemp("out") / "batch"
     killed: list[int] = []
-    killer = threading.Thread(target=_kill_first_attempt, args=(out / ".batch" / "b.running", killed), daemon=True)
+    stop = threading.Event()
+    killer = threading.Thread(target=_kill_first_attempt, args=(out / ".batch" / "b.running", killed, stop),
+                              daemon=True)
     cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
     try:
         cluster.add_node(num_cpus=1)
@@ -90,6 +96,7 @@ def first(root, tmp_path_factory):
         killer.start()
         code = main(["batch", str(root), "--out", str(out), *JOB_FLAGS, "--retries", "1", "--address",
                      cluster.address, "-q"])
+        stop.set()
         killer.join(timeout=5)
     finally:
         cluster.shutdown()
@@ -197,7 +204,7 @@ def test_resume_from_a_manifest_redoes_only_what_changed(first, root):
     os.utime(img, ns=(img.stat().st_atime_ns, img.stat().st_mtime_ns + 10**9))  # a's input changed
     # the same jobs as ROOT's, listed: c's own turntable.toml still applies; d named by default
     manifest = root.parent / "jobs.csv"
-    manifest.write_text("name,input,resolution\na,root/a,\nb,root/b,32\nc,root/c,\n,root/d,\n")
+    manifest.write_text("name,input,resolution\na,root/a,\nb,root/b,48\nc,root/c,\n,root/d,\n")
     code = main(["batch", "--manifest", str(manifest), "--out", str(out), *JOB_FLAGS, "--resume", "-q"])
     assert code == 1  # d still fails
     rows = {r["object"]: r for r in json.loads((out / "batch.json").read_text())["rows"]}
