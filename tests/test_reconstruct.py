@@ -366,6 +366,9 @@ def test_doubtful_pixels_reaching_the_wall_do_not_grow_the_volume(scene, tmp_pat
     assert not vol["grown"] and vol["notes"] and "doubtful" in vol["notes"][0], vol
     # that doubt ran to the volume's outline in every view: dropped there, the hull is the masks' again
     assert any("lost the doubtful pixels" in n and "now fits" in n for n in vol["notes"]), vol
+    # split along the photo's edges, the object would keep the paper and disc its mask reaches first (the
+    # target's ink encloses them): a hull far larger than the one without the pieces, so they go whole
+    assert any("dropped whole" in n for n in vol["notes"]), vol
     ref = tmp_path / "ref"
     assert main(_known_cameras_args(scene, ref, "--max-rejections", "1")) == 0
     ref_cm3 = json.loads((ref / "summary.json").read_text())["mesh"]["volume_cm3"]
@@ -397,6 +400,39 @@ def test_doubt_off_the_outline_drops_only_the_pieces_that_reach_it(scene):
     assert (got[[0, 2]] == unknown[[0, 2]]).all()
     assert not (got[1] & ~masks[1]).any()  # the band joined the wall: one piece, dropped whole
     assert not doubt_off_the_outline(masks, band, K, Ts, vol)[1]
+
+
+def test_doubt_off_the_outline_splits_the_object_from_the_wall_along_its_edge(scene):
+    """With the photos, a doubtful top of the object (cut from its mask: the neck through which a wall of its
+    colour joined) stays unknown; the wall beyond the object's outline, flat in the photo, goes. Without them
+    (or ``whole=True``) the piece goes whole."""
+    import cv2
+
+    from recon.silhouettes import cylinder_region
+    from turntable.stages.volume import WorkingVolume, doubt_off_the_outline
+
+    gt = read_cameras(scene / "cameras_gt.json")
+    K, Ts = gt.intrinsics.K, np.stack([f.T_cam_table for f in gt.frames])[:3]
+    truth = np.stack([cv2.imread(str(p), 0) > 127 for p in sorted((scene / "masks").glob("*.png"))[:3]])
+    images = [cv2.imread(str(p))[..., ::-1] for p in sorted((scene / "images").glob("*"))[:3]]
+    vol = WorkingVolume(radius_mm=80.0, height_mm=125.0, max_radius_mm=200.0, max_height_mm=300.0, source="test")
+    region = cylinder_region(K, Ts[1], (640, 480), vol.radius_mm, vol.height_mm)
+    ys, xs = np.nonzero(truth[1])
+    neck = truth[1].copy()
+    neck[ys.min() + 25:] = False  # the object's top 25 rows: doubtful, not in its mask
+    masks = truth.copy()
+    masks[1] &= ~neck
+    wall = np.zeros_like(neck)
+    wall[:ys.min(), xs.min() - 20:xs.max() + 20] = True  # from the object's top up to the image's top
+    wall &= region
+    unknown = np.zeros_like(masks)
+    unknown[1] = neck | wall
+    got, views = doubt_off_the_outline(masks, unknown, K, Ts, vol, images)
+    assert views == [1]
+    assert (got[1] & neck).sum() >= 0.9 * neck.sum()  # the object's side of its outline stays unknown
+    assert (got[1] & wall).sum() <= 0.05 * wall.sum()  # the wall's side goes
+    whole, _ = doubt_off_the_outline(masks, unknown, K, Ts, vol, images, whole=True)
+    assert not whole[1].any()
 
 
 def test_negative_max_rejections_fails_before_any_work(tmp_path, scene, capsys):

@@ -63,9 +63,19 @@ class HullStage:
     report: dict  # summary.json's "working_volume"
 
 
+def _fits(hull) -> bool:
+    """The carved hull stays off the working volume's side and top."""
+    return not (hull.meta["touches_side"] > 0 or hull.meta["touches_top"] > 0)
+
+
+def _inside_mm3(hull) -> float:
+    """The hull's volume (its grid is fitted to what it carves: compare in mm^3, not voxels)."""
+    return float((hull.values > 0).sum()) * hull.voxel_mm ** 3
+
+
 def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progress, ws, intr=None) -> HullStage:
     """Silhouettes and hull in a working volume grown until the object fits (or the view ends)."""
-    from .volume import MIN_TOUCH_VIEWS, doubt_off_the_outline, initial_volume, mask_touches
+    from .volume import MIN_TOUCH_VIEWS, SPLIT_MAX_GROWTH, doubt_off_the_outline, initial_volume, mask_touches
 
     H, W = images_rgb[0].shape[:2]
     try:
@@ -120,18 +130,38 @@ def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progres
                 # would chase the doubt to the edge of the view: note it, and keep the volume.
                 doubtful_wall = [f"doubtful silhouette pixels (not the object's sure silhouette) let the hull reach "
                                  f"its {w}" for w, t in zip(("side", "top"), touch, strict=True) if t]
-                # and they ran there in the views: drop, per view, the doubt that reaches the volume's outline
-                unknown, pruned = doubt_off_the_outline(sil.masks[keep], sil.unknown[keep], K, Ts[keep], vol)
-                if pruned:
-                    sil = replace(sil, unknown=sil.unknown.copy())
-                    sil.unknown[keep] = unknown
-                    hull = carve(sil, keep, stage_key(key, "doubt off the outline"), vol)
+                # and they ran there in the views: drop, per view, the doubt that reaches the volume's outline,
+                # split from the object along the image's edges (the object keeps what its mask reaches first).
+                # The split stands where its hull fits and is not much larger than the hull without those pieces
+                # (the neck it gives back is a small part; a split that gives the object the paper and the disc
+                # enclosed by the target's ink is not); otherwise the pieces go whole.
+                first, tried = sil, {}
+                for whole in (False, True):
+                    unknown, pruned = doubt_off_the_outline(first.masks[keep], first.unknown[keep], K, Ts[keep],
+                                                            vol, [images_rgb[k] for k in keep], whole=whole)
+                    if not pruned:
+                        break
+                    cut = replace(first, unknown=first.unknown.copy())
+                    cut.unknown[keep] = unknown
+                    tried[whole] = (cut, carve(cut, keep, stage_key(key, "doubt off the outline", whole), vol), pruned)
+                how, choice = "", None
+                if False in tried and True in tried:
+                    (_, h_split, _), (_, h_whole, _) = tried[False], tried[True]
+                    grows = _inside_mm3(h_split) / max(_inside_mm3(h_whole), 1e-9)
+                    if _fits(h_split) and grows <= SPLIT_MAX_GROWTH:
+                        choice, how = False, (f"split from the object along the image's edges (the hull {grows:.2f}x "
+                                              f"the one without those pieces)")
+                    else:
+                        choice, how = True, ("dropped whole (split along the image's edges, the hull "
+                                             + ("still reached the outline" if not _fits(h_split) else
+                                                f"was {grows:.2f}x the one without them") + ")")
+                if choice is not None:
+                    sil, hull, pruned = tried[choice]
                     doubtful_wall.append(f"WARNING: {len(pruned)} view(s) lost the doubtful pixels that ran to the "
-                                         f"working volume's outline (a wall of the object's colour), and the hull "
-                                         + ("still reaches it" if hull.meta["touches_side"] > 0 or
-                                            hull.meta["touches_top"] > 0 else "now fits")
-                                         + "; parts of the object with the wall's colour may be missing (a dark or "
-                                           "coloured backdrop avoids this)")
+                                         f"working volume's outline (a wall of the object's colour), {how}, and the "
+                                         f"hull {'now fits' if _fits(hull) else 'still reaches it'}; parts of the "
+                                         f"object with the wall's colour may be missing (a dark or coloured backdrop "
+                                         f"avoids this)")
                 progress.note(f"working volume: {'; '.join(doubtful_wall)}")
                 why = []
         if not why:

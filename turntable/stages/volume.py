@@ -19,12 +19,15 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-__all__ = ["WorkingVolume", "initial_volume", "mask_touches", "doubt_off_the_outline", "MIN_TOUCH_VIEWS"]
+__all__ = ["WorkingVolume", "initial_volume", "mask_touches", "doubt_off_the_outline", "MIN_TOUCH_VIEWS",
+           "SPLIT_MAX_GROWTH"]
 
 _GROWTH = 1.25  # each step grows the radius by this factor ...
 _MIN_STEP_MM = 10.0  # ... and by at least this much
 _BAND_PX = 2  # a mask pixel within this many pixels inside the cylinder's image outline touches it
 _MIN_TOUCH_PX = 3  # ... and a view touches the outline when at least this many of its mask pixels do
+_SPLIT_MIN_VIEWS = 3  # the object's side of the split is voted on where at least this many views split a pixel
+SPLIT_MAX_GROWTH = 1.3  # the split's hull may be this many times the one without the pieces (a neck given back)
 MIN_TOUCH_VIEWS = 2  # the volume grows when this many views' silhouettes touch it (one may be noise)
 
 
@@ -128,18 +131,28 @@ def mask_touches(masks: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, vol:
 
 
 def doubt_off_the_outline(masks: np.ndarray, unknown: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray,
-                          vol: WorkingVolume) -> tuple[np.ndarray, list[int]]:
-    """``unknown`` less, per view, its pieces (8-connected, off the mask) that run to the volume's image outline.
+                          vol: WorkingVolume, images_rgb: np.ndarray | None = None,
+                          whole: bool = False) -> tuple[np.ndarray, list[int]]:
+    """``unknown`` less, per view, the doubt that runs to the volume's image outline.
 
     Carved from ``masks | unknown``, a hull that reaches the working volume's
     top or side while the masks fit inside it was grown by doubt, not by the
     object: a wall of the object's grey joined through a stretch of outline
-    where the object's shade is exactly the wall's (a static white vase on a
+    where the object's shade is close to the wall's (a static white vase on a
     light wall: the whole wall above it, the hull the volume's full height,
-    22.8 % of the diagonal). Such a piece reaches the outline of the
-    cylinder's image, which the object's own doubtful parts do not. Dropping
-    it may take a part of the object with it (the neck through which the wall
-    joined): the price of not carving a volume-high block.
+    22.8 % of the diagonal). Such a piece (8-connected, off the mask) reaches
+    the outline of the cylinder's image, which the object's own doubtful
+    parts do not.
+
+    With ``images_rgb``, a piece is split along the image's edges first: a
+    watershed of the colour gradient flooded from the mask and from the
+    piece's pixels on the outline gives the object the part it reaches
+    before crossing an edge (the neck through which the wall joined) and
+    drops only the wall's side, except where most views that split the
+    pixel give it to the object. ``whole=True`` (or no images) drops every
+    such piece whole: the fallback where the split still leaves the hull at
+    the outline (no edge between the object and the wall), at the price of
+    the object's parts inside the piece.
 
     Returns ``(unknown, views)``: the pruned unknown pixels and the views that lost any.
     """
@@ -150,7 +163,10 @@ def doubt_off_the_outline(masks: np.ndarray, unknown: np.ndarray, K: np.ndarray,
     kernel = np.ones((3, 3), np.uint8)
     inner = np.zeros((H, W), bool)
     inner[_BAND_PX:H - _BAND_PX, _BAND_PX:W - _BAND_PX] = True
-    out, views = unknown.copy(), []
+    split = images_rgb is not None and not whole
+    drop = np.zeros_like(unknown)
+    in_piece = np.zeros((H, W), np.int32) if split else None
+    kept = np.zeros((H, W), np.int32) if split else None
     for i in range(V):
         doubt = unknown[i] & ~masks[i]
         if not doubt.any():
@@ -160,7 +176,41 @@ def doubt_off_the_outline(masks: np.ndarray, unknown: np.ndarray, K: np.ndarray,
         n, lab = cv2.connectedComponents(doubt.astype(np.uint8), connectivity=8)
         hit = np.unique(lab[band & doubt])
         hit = hit[hit > 0]
-        if len(hit):
-            out[i] &= ~np.isin(lab, hit)
-            views.append(i)
-    return out, views
+        if not len(hit):
+            continue
+        pieces = np.isin(lab, hit)
+        drop[i] = _wall_side(images_rgb[i], masks[i], pieces, band) if split and masks[i].any() else pieces
+        if split:
+            in_piece += pieces
+            kept += pieces & ~drop[i]
+    if split:
+        # a pixel the split gives the object in most of the views whose pieces hold it stays in every view: a part
+        # static in the image (a vase's neck) is the same pixels in each frame, and one view whose flood crossed
+        # a faint stretch of its outline first would carve it away alone
+        held = (in_piece >= _SPLIT_MIN_VIEWS) & (2 * kept >= in_piece)
+        drop &= ~held
+    views = [i for i in range(V) if drop[i].any()]
+    return unknown & ~drop, views
+
+
+def _wall_side(img: np.ndarray, mask: np.ndarray, pieces: np.ndarray, band: np.ndarray) -> np.ndarray:
+    """The pixels of ``pieces`` that a watershed of the image's colour gradient floods from the outline ``band``
+    before the mask's flood reaches them (on the bounding box of the pieces and the mask)."""
+    from skimage.segmentation import watershed
+
+    ys, xs = np.nonzero(pieces | mask)
+    y0, y1 = max(ys.min() - 2, 0), min(ys.max() + 3, mask.shape[0])
+    x0, x1 = max(xs.min() - 2, 0), min(xs.max() + 3, mask.shape[1])
+    box = np.s_[y0:y1, x0:x1]
+    smooth = cv2.GaussianBlur(np.asarray(img[box], np.float32), (0, 0), 1.0)
+    grad = np.zeros(smooth.shape[:2], np.float32)
+    for c in range(smooth.shape[2]):  # the largest channel's gradient: an edge in any colour
+        grad = np.maximum(grad, cv2.magnitude(cv2.Sobel(smooth[..., c], cv2.CV_32F, 1, 0),
+                                              cv2.Sobel(smooth[..., c], cv2.CV_32F, 0, 1)))
+    markers = np.zeros(grad.shape, np.int32)
+    markers[mask[box]] = 1
+    markers[pieces[box] & band[box]] = 2
+    flooded = watershed(grad, markers, mask=(pieces | mask)[box])
+    wall = np.zeros_like(pieces)
+    wall[box] = (flooded == 2) & pieces[box]
+    return wall
