@@ -102,13 +102,18 @@ def in_set(img: np.ndarray, colours: np.ndarray) -> np.ndarray:
     return colours[q[..., 0], q[..., 1], q[..., 2]]
 
 
+_INK_CONTRAST = 1.0 / 3.0  # the image reproduces the plate's ink with at least this share of its contrast
+
+
 def texture_match(img, plate: Plate, tau) -> np.ndarray:
     """(h, w) bool: the pixel's 3 x 3 neighbourhood reproduces the trusted table plate's texture there.
 
     Where the plate has texture (printed ink: its 3 x 3 grey-level spread is
     above ``2 tau``), a normalised cross-correlation above 0.8 between the
     image and the plate says the ray reaches the paper: an object in front
-    of it (white on white paper included) cannot draw the ink's pattern. The
+    of it (white on white paper included) cannot draw the ink's pattern, nor
+    its contrast (the image's 3 x 3 spread must be a third of the plate's or
+    more: a white object's faint shading correlates by chance). The
     pixel itself must lie within ``3 tau`` of the plate's 3 x 3 range (the
     plate, resampled twice, is blurrier than the photo: thin ink is lighter
     in it), so an object pixel next to visible ink is not taken for it.
@@ -124,7 +129,10 @@ def texture_match(img, plate: Plate, tau) -> np.ndarray:
     cov = box(g * p) - mg * mp
     ncc = cov / np.sqrt(np.maximum(vg * vp, 1e-6))
     near = range_dist(img, plate.lo, plate.hi) < 3.0 * tau  # the pixel itself within the plate's range
-    return plate.trust & near & (vp > (2.0 * tau) ** 2) & (ncc > 0.8)
+    # and the image must draw the ink with a contrast of its own (its 3 x 3 spread at least a third of the
+    # plate's): a white object's faint shading in front of a ring's edge correlates with it by chance
+    drawn = vg > (_INK_CONTRAST ** 2) * vp
+    return plate.trust & near & (vp > (2.0 * tau) ** 2) & drawn & (ncc > 0.8)
 
 
 def doubtful_pixels(img, mask, region, ev: Evidence, ink: np.ndarray, plates_only: bool) -> np.ndarray:

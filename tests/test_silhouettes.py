@@ -445,3 +445,26 @@ def test_untrust_enclosed_drops_plain_islands_only():
     outside = trust.astype(bool).copy()
     outside[plain] = False
     assert out[outside].all()  # the paper around keeps its trust
+
+
+def test_ink_is_reproduced_only_with_its_contrast():
+    """The table plate's ink (a black ring's edge on white paper) seen in the photo is sure background; the
+    same edge drawn at a tenth of its contrast (a white object's faint shading in front of it, correlated
+    with it by chance) is not, nor is a flat white object; a shadow over the ink (half its contrast) still is."""
+    from recon.silhouette_doubt import Plate, plate_envelope, texture_match
+
+    x = np.arange(40)[None, :].repeat(40, 0)
+    paper = np.where(x < 20, 30.0, 230.0)  # the ring's edge: black ink, white paper
+    plate = np.repeat(paper[..., None], 3, axis=2).astype(np.uint8)
+    lo, hi = plate_envelope(plate)
+    trusted = Plate(mid=plate, lo=lo, hi=hi, trust=np.ones((40, 40), bool), strong=np.ones((40, 40), bool))
+    edge = np.s_[5:35, 19:21]  # the pixels whose 3 x 3 window holds the edge
+
+    def seen(grey):
+        return texture_match(np.repeat(np.asarray(grey)[..., None], 3, axis=2).astype(np.uint8), trusted, 6.0)
+
+    assert seen(paper)[edge].mean() > 0.9
+    assert seen(130.0 + 0.5 * (paper - 130.0))[edge].mean() > 0.9  # a shadow halves the ink's contrast
+    assert seen(200.0 + 0.1 * (paper - 130.0))[edge].mean() == 0.0  # white shading along the edge
+    assert not seen(np.full((40, 40), 200.0)).any()
+
