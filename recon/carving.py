@@ -45,6 +45,7 @@ from __future__ import annotations
 import math
 import sys
 from collections.abc import Callable, Iterable
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -54,7 +55,7 @@ from calib.camera import as_K, as_poses
 from .types import VoxelHull
 
 __all__ = ["carve_hull", "silhouette_sdf_px", "largest_visible_radius_mm", "largest_visible_height_mm",
-           "largest_carvable_radius_mm", "hull_peak_bytes", "HullTooLarge"]
+           "largest_carvable_radius_mm", "hull_peak_bytes", "HullTooLarge", "drop_floating_bodies"]
 
 _UNSEEN_PX = 1.0e6  # distance-map value that means "this view has no opinion"
 _BAND = 1.25 * math.sqrt(3.0) / 2.0  # refine when |D| < _BAND * cell edge (half diagonal + 25 %)
@@ -509,3 +510,37 @@ def carve_hull(masks: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, *,
     meta = {"max_rejections": k, "views": V, "region_lo": region.lo.tolist(), "region_hi": region.hi.tolist(),
             "evaluated": int(evaluated), "touches_side": side, "touches_top": top}
     return VoxelHull(values=vals, origin_table=origin, voxel_mm=voxel, meta=meta)
+
+
+def drop_floating_bodies(hull: VoxelHull, ground_tol_mm: float = 3.0,
+                         keep_fraction: float = 0.5) -> tuple[VoxelHull, list[float]]:
+    """The hull without its bodies that float: ``(hull, dropped volumes in mm^3, largest first)``.
+
+    An object standing on the turntable is connected and rests on the table,
+    so its visual hull holds it in a body that reaches down to the table. A
+    body (26-connected inside voxels) whose lowest voxel stays more than
+    ``ground_tol_mm`` (at least 3 voxels) above the hull's lowest one is a
+    phantom of the silhouettes (a patch of doubt between a chair's slats that
+    every view leaves uncarved) unless it is large: bodies of at least
+    ``keep_fraction`` of the largest one's volume stay (two objects, one on a
+    stand the silhouettes lost). Dropped voxels are set just outside.
+    """
+    from scipy import ndimage
+
+    inside = hull.values > 0
+    lab, n = ndimage.label(inside, structure=np.ones((3, 3, 3), bool))
+    if n <= 1:
+        return hull, []
+    idx = np.arange(1, n + 1)
+    vol = ndimage.sum_labels(inside, lab, idx)
+    ys = np.nonzero(inside)[1]
+    low = ndimage.minimum(np.broadcast_to(np.arange(inside.shape[1])[None, :, None], inside.shape), lab, idx)
+    tol = max(ground_tol_mm / hull.voxel_mm, 3.0)
+    floating = (np.asarray(low) > ys.min() + tol) & (vol < keep_fraction * vol.max())
+    if not floating.any():
+        return hull, []
+    drop = np.isin(lab, idx[floating])
+    vals = hull.values.copy()
+    vals[drop] = np.minimum(vals[drop], np.float32(-1e-3))
+    dropped = sorted((float(v) * hull.voxel_mm ** 3 for v in vol[floating]), reverse=True)
+    return replace(hull, values=vals, meta={**hull.meta, "floating_dropped": len(dropped)}), dropped

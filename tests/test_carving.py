@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -214,3 +216,25 @@ def test_a_grid_larger_than_the_memory_available_is_refused_before_it_is_allocat
     assert "GB of memory available" in str(err.value)
     monkeypatch.setattr(rc, "memory_available_bytes", lambda: None)  # not Linux: no refusal
     assert np.array_equal(carve_hull(masks, K, T, radius_mm=80.0, resolution=64).values, hull.values)
+
+
+def test_floating_bodies_are_dropped_grounded_and_large_ones_kept():
+    """A hull of four bodies (1 mm voxels, Y up): the object on the table, a small blob floating above it (a
+    phantom), a small block standing on the table beside it, and a floating block half the object's size."""
+    from recon.carving import drop_floating_bodies
+
+    vals = np.full((60, 60, 60), -1.0, np.float32)
+    vals[5:25, 0:40, 5:25] = 1.0  # the object: 20 x 40 x 20, on the table (y index 0)
+    vals[30:34, 30:34, 30:34] = 1.0  # 64 voxels floating 30 mm up
+    vals[40:44, 2:6, 40:44] = 1.0  # 64 voxels, 2 mm above the lowest: within the 3 mm tolerance
+    vals[35:55, 20:40, 5:25] = 1.0  # 8000 voxels floating 20 mm up: half the object's 16000
+    hull = VoxelHull(values=vals, origin_table=np.zeros(3), voxel_mm=1.0, meta={"touches_top": 0})
+    out, dropped = drop_floating_bodies(hull)
+    assert dropped == [64.0]
+    assert (out.values[30:34, 30:34, 30:34] < 0).all()
+    kept = out.values > 0
+    assert kept.sum() == 16000 + 64 + 8000 and out.meta["floating_dropped"] == 1 and out.meta["touches_top"] == 0
+    assert (hull.values[30:34, 30:34, 30:34] > 0).all()  # the input is not modified
+    # without the phantom (z < 30) nothing floats that is small: the hull comes back as it was
+    cut = dataclasses.replace(hull, values=vals[:, :, :30])
+    assert drop_floating_bodies(cut) == (cut, [])

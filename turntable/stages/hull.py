@@ -75,6 +75,8 @@ def _inside_mm3(hull) -> float:
 
 def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progress, ws, intr=None) -> HullStage:
     """Silhouettes and hull in a working volume grown until the object fits (or the view ends)."""
+    from recon.carving import drop_floating_bodies
+
     from .volume import MIN_TOUCH_VIEWS, SPLIT_MAX_GROWTH, doubt_off_the_outline, initial_volume, mask_touches
 
     H, W = images_rgb[0].shape[:2]
@@ -177,6 +179,14 @@ def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progres
         vol = bigger
     if hull is None:
         hull = carve(sil, keep, key, vol)
+    # an object on the table is one body resting on it: a body of the hull floating above the table is a phantom
+    hull, floating = drop_floating_bodies(hull)
+    if floating:
+        size = f"{sum(floating) / 1000:.1f} cm³" if sum(floating) >= 100 else f"{sum(floating):.1f} mm³"
+        doubtful_wall.append(f"{len(floating)} piece(s) of the hull float above the table, apart from the object "
+                             f"({size}: space every view's silhouette left uncarved, which no object standing on "
+                             f"the turntable can fill): dropped")
+        progress.note(f"working volume: {doubtful_wall[-1]}")
     cache.save("volume", vol_key, size=np.array([vol.radius_mm, vol.height_mm]), grown=np.array(grown, dtype=str))
     report = {"radius_mm": round(vol.radius_mm, 1), "height_mm": round(vol.height_mm, 1),
               "first_guess": vol.source, "max_radius_mm": round(vol.max_radius_mm, 1),
