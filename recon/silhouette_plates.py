@@ -179,6 +179,36 @@ def untrust_enclosed(trust: np.ndarray, plate: np.ndarray, tau: float) -> np.nda
     return (keep[lab] & (t > 0)).astype(np.uint8)
 
 
+def reached_from_outside(room: np.ndarray, inside: np.ndarray, room_colours: np.ndarray, tau: float) -> np.ndarray:
+    """(h, w) bool: where the room plate may vouch for the room inside the volume's image, by where it lies.
+
+    A plain stretch of the plate is the room's where it joins the room outside
+    the volume's image through pixels of the room's colours without crossing
+    an edge of the plate (colour gradient above ``2 tau``, widened by a pixel):
+    the wall behind the object. A static object inside the volume (a white
+    body of revolution, which the plate shows in every frame) is enclosed by
+    its outline's edge even where its shade is one of the wall's colours; by
+    colour alone it was the room's or not by chance (a vase seen at 40 deg on
+    a light wall: its shaded side taken for background, 6.1 % of the diagonal).
+    Textured stretches (the gradient's 9 x 9 mean above ``2 tau``: a wooden
+    table's grain, clutter) keep the colour rule: their own edges would cut
+    them off, and no plain static object looks like them.
+    """
+    smooth = cv2.GaussianBlur(room.astype(np.float32), (0, 0), 1.0)
+    grad = np.zeros(room.shape[:2], np.float32)
+    for c in range(room.shape[2]):
+        grad = np.maximum(grad, cv2.magnitude(cv2.Sobel(smooth[..., c], cv2.CV_32F, 1, 0),
+                                              cv2.Sobel(smooth[..., c], cv2.CV_32F, 0, 1)))
+    edge = cv2.dilate((grad > 2.0 * tau).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    free = in_set(room, room_colours) & ~edge
+    n, lab = cv2.connectedComponents(free.astype(np.uint8), connectivity=4)
+    hit = np.zeros(n, bool)
+    hit[np.unique(lab[free & ~inside])] = True
+    hit[0] = False
+    textured = cv2.blur(grad, (9, 9)) > 2.0 * tau
+    return hit[lab] | textured
+
+
 class Plates:
     """Room plate (image) and table plate (rectified plane), with where they are trusted."""
 
@@ -188,10 +218,11 @@ class Plates:
         agree = np.mean([range_dist(c, lo, hi) < tau for c in crops], axis=0)
         # Inside the cylinder's image a static plate pixel may be a static object (a uniformly
         # coloured body of revolution looks the same in every frame): trust it as background only
-        # where its colour is one the surroundings show outside the cylinder.
+        # where its colour is one the surroundings show outside the cylinder, and, where the plate
+        # is plain, where it joins them without crossing an edge (reached_from_outside).
         self.room = Plate(room, lo, hi, agree >= TRUST, agree >= STRONG)
         self.room_colours = room_colours
-        verified = ~inside | in_set(room, room_colours)
+        verified = ~inside | (in_set(room, room_colours) & reached_from_outside(room, inside, room_colours, tau))
         self.room_verified = Plate(room, lo, hi, self.room.trust & verified, self.room.strong & verified)
         self.plane_radius = radius_mm + PLATE_BORDER_MM
         rect = np.stack([rectify_to_table(im, K, t, self.plane_radius, PLANE_PX_PER_MM)

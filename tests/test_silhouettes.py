@@ -468,3 +468,30 @@ def test_ink_is_reproduced_only_with_its_contrast():
     assert seen(200.0 + 0.1 * (paper - 130.0))[edge].mean() == 0.0  # white shading along the edge
     assert not seen(np.full((40, 40), 200.0)).any()
 
+
+
+def test_room_plate_vouches_only_for_the_plain_room_it_reaches():
+    """A light grey wall (150) seen outside and inside the volume's image, and inside it a static plain
+    object (a disc of 156, one of the wall's colours, ringed by its darker outline) and a patch of wood
+    grain. The wall inside is the room's; the object is not, though its colour is; the grain keeps the
+    colour rule (its own edges would cut it off)."""
+    from recon.silhouette_doubt import colour_set
+    from recon.silhouette_plates import reached_from_outside
+
+    rng = np.random.default_rng(0)
+    room = np.full((130, 170, 3), 150.0)
+    yy, xx = np.mgrid[:130, :170]
+    r = np.hypot(yy - 65, xx - 62)
+    room[r < 32] = 156.0  # the object's plain shade: within a bin of the wall's
+    room[(r >= 30) & (r < 32)] = 110.0  # its outline, darker (the edge between it and the wall)
+    grain = (slice(30, 90), slice(110, 150))
+    room[grain] = (120.0 + 40.0 * (np.sin(xx[grain] * 1.3) > 0))[..., None]  # stripes, 4 px
+    room = np.clip(room + rng.normal(0.0, 1.0, room.shape), 0, 255).astype(np.uint8)
+    inside = np.zeros((130, 170), bool)
+    inside[10:120, 20:160] = True
+    outside = np.concatenate([room[~inside], room[grain].reshape(-1, 3)])  # the room shows the wood elsewhere too
+    colours = colour_set(outside)
+    reached = reached_from_outside(room, inside, colours, tau=6.0)
+    assert reached[15:25, 105:150].all()  # the wall inside the volume's image
+    assert not reached[r < 20].any()  # the object's plain interior (its outline's texture reaches a few px in)
+    assert reached[grain][5:-5, 5:-5].all()  # the grain, by its texture
