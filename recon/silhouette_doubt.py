@@ -26,9 +26,9 @@ import cv2
 import numpy as np
 from scipy.ndimage import binary_dilation
 
-__all__ = ["Plate", "Evidence", "doubtful_pixels", "texture_match", "colour_dist", "plate_envelope", "range_dist",
-           "shadow_dist", "colour_set", "in_set", "MAJOR_SHARE", "doubt_joined", "doubt_across", "doubt_unlike",
-           "reach"]
+__all__ = ["Plate", "Evidence", "doubtful_pixels", "texture_match", "colour_dist", "colour_gradient", "plate_envelope",
+           "range_dist", "shadow_dist", "colour_set", "in_set", "MAJOR_SHARE", "doubt_joined", "doubt_across",
+           "doubt_unlike", "reach"]
 
 
 @dataclass(frozen=True)
@@ -84,6 +84,17 @@ def shadow_dist(img: np.ndarray, plate: np.ndarray) -> np.ndarray:
 
 MAJOR_SHARE = 0.002  # an object colour fills at least this share of the object's pixels (one bin)
 _BIN = 8  # colour-set bins: 8 DN per channel (32^3 bins), one bin of slack around each seen colour
+
+
+def colour_gradient(img: np.ndarray, sigma: float = 1.0) -> np.ndarray:
+    """(h, w) float32: the largest channel's Sobel gradient magnitude of ``img`` (h, w, C) after a Gaussian blur
+    of ``sigma`` pixels: an edge in any colour."""
+    smooth = cv2.GaussianBlur(np.asarray(img, np.float32), (0, 0), sigma)
+    grad = np.zeros(smooth.shape[:2], np.float32)
+    for c in range(smooth.shape[2]):
+        grad = np.maximum(grad, cv2.magnitude(cv2.Sobel(smooth[..., c], cv2.CV_32F, 1, 0),
+                                              cv2.Sobel(smooth[..., c], cv2.CV_32F, 0, 1)))
+    return grad
 
 
 def colour_set(samples: np.ndarray, min_count: int = 2) -> np.ndarray:

@@ -22,7 +22,7 @@ import numpy as np
 from calib.camera import plane_homography
 
 from .silhouette_checks import camera_azimuths_deg
-from .silhouette_doubt import Plate, colour_dist, in_set, plate_envelope, range_dist
+from .silhouette_doubt import Plate, colour_dist, colour_gradient, in_set, plate_envelope, range_dist
 
 __all__ = ["Plates", "rectify_to_table", "raster_to_table", "median_frames", "below_horizon", "table_plate",
            "PLANE_PX_PER_MM", "PLATE_BORDER_MM", "TRUST", "STRONG", "untrust_enclosed"]
@@ -194,11 +194,7 @@ def reached_from_outside(room: np.ndarray, inside: np.ndarray, room_colours: np.
     table's grain, clutter) keep the colour rule: their own edges would cut
     them off, and no plain static object looks like them.
     """
-    smooth = cv2.GaussianBlur(room.astype(np.float32), (0, 0), 1.0)
-    grad = np.zeros(room.shape[:2], np.float32)
-    for c in range(room.shape[2]):
-        grad = np.maximum(grad, cv2.magnitude(cv2.Sobel(smooth[..., c], cv2.CV_32F, 1, 0),
-                                              cv2.Sobel(smooth[..., c], cv2.CV_32F, 0, 1)))
+    grad = colour_gradient(room)
     edge = cv2.dilate((grad > 2.0 * tau).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
     free = in_set(room, room_colours) & ~edge
     n, lab = cv2.connectedComponents(free.astype(np.uint8), connectivity=4)

@@ -469,7 +469,6 @@ def test_ink_is_reproduced_only_with_its_contrast():
     assert not seen(np.full((40, 40), 200.0)).any()
 
 
-
 def test_room_plate_vouches_only_for_the_plain_room_it_reaches():
     """A light grey wall (150) seen outside and inside the volume's image, and inside it a static plain
     object (a disc of 156, one of the wall's colours, ringed by its darker outline) and a patch of wood

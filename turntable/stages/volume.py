@@ -198,15 +198,13 @@ def _wall_side(img: np.ndarray, mask: np.ndarray, pieces: np.ndarray, band: np.n
     before the mask's flood reaches them (on the bounding box of the pieces and the mask)."""
     from skimage.segmentation import watershed
 
+    from recon.silhouette_doubt import colour_gradient
+
     ys, xs = np.nonzero(pieces | mask)
     y0, y1 = max(ys.min() - 2, 0), min(ys.max() + 3, mask.shape[0])
     x0, x1 = max(xs.min() - 2, 0), min(xs.max() + 3, mask.shape[1])
     box = np.s_[y0:y1, x0:x1]
-    smooth = cv2.GaussianBlur(np.asarray(img[box], np.float32), (0, 0), 1.0)
-    grad = np.zeros(smooth.shape[:2], np.float32)
-    for c in range(smooth.shape[2]):  # the largest channel's gradient: an edge in any colour
-        grad = np.maximum(grad, cv2.magnitude(cv2.Sobel(smooth[..., c], cv2.CV_32F, 1, 0),
-                                              cv2.Sobel(smooth[..., c], cv2.CV_32F, 0, 1)))
+    grad = colour_gradient(img[box])  # the largest channel's gradient: an edge in any colour
     markers = np.zeros(grad.shape, np.int32)
     markers[mask[box]] = 1
     markers[pieces[box] & band[box]] = 2
