@@ -532,11 +532,10 @@ def drop_floating_bodies(hull: VoxelHull, ground_tol_mm: float = 3.0,
     if n <= 1:
         return hull, []
     idx = np.arange(1, n + 1)
-    vol = ndimage.sum_labels(inside, lab, idx)
-    ys = np.nonzero(inside)[1]
-    low = ndimage.minimum(np.broadcast_to(np.arange(inside.shape[1])[None, :, None], inside.shape), lab, idx)
+    vol = np.bincount(lab.ravel(), minlength=n + 1)[1:]
+    low = np.array([box[1].start for box in ndimage.find_objects(lab)])  # each body's lowest layer (axis 1 is up)
     tol = max(ground_tol_mm / hull.voxel_mm, 3.0)
-    floating = (np.asarray(low) > ys.min() + tol) & (vol < keep_fraction * vol.max())
+    floating = (low > low.min() + tol) & (vol < keep_fraction * vol.max())
     if not floating.any():
         return hull, []
     drop = np.isin(lab, idx[floating])
