@@ -62,7 +62,11 @@ the object reaches it only while the object turns past), with the doubtful
 gaps between them and the object closed. Last, doubtful pixels unlike the
 background's own colour (a thin arm whose shading turns across it, all
 edge) join where they touch what the frame holds
-(:func:`recon.silhouette_doubt.doubt_unlike`). In a ``"conservative"`` frame,
+(:func:`recon.silhouette_doubt.doubt_unlike`), and holes in what the frame
+holds that are doubtful throughout and joined to it through smooth shading
+on half their rim or more are closed (a white belly's lit side in front of
+the paper, :func:`recon.silhouette_doubt.doubt_enclosed`; a view between an
+arm and the body is ringed by an edge). In a ``"conservative"`` frame,
 and in every frame of a sequence with two or more conservative frames,
 the doubtful pixels are judged without trusting the mask's colours or a room
 plate the object may have polluted. Carving with ``mask | unknown`` rejects a voxel
@@ -98,6 +102,7 @@ from .silhouette_doubt import (
     colour_dist,
     colour_set,
     doubt_across,
+    doubt_enclosed,
     doubt_joined,
     doubt_unlike,
     doubtful_pixels,
@@ -607,7 +612,8 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
                 gaps |= dk & closed & (cv2.dilate(kept.astype(np.uint8), kc) > 0)
                 grown |= more
             unknown[i] |= (grown | gaps) & union & ~masks[i]
-    for i in used:  # thin parts beyond an edge, unlike the background (doubt_unlike)
-        u = unknown[(i, *box)]
+    for i in used:  # thin parts beyond an edge, unlike the background (doubt_unlike); then doubtful holes
+        u = unknown[(i, *box)]  # joined through smooth shading (doubt_enclosed)
         u |= doubt_unlike(outs[i].mask, u, doubtful[i], outs[i].unlike)
+        u |= doubt_enclosed(crops[i], outs[i].mask | u, doubtful[i], tau)
     return SilhouetteResult(masks=masks, unknown=unknown, quality=quality, status=status)

@@ -379,6 +379,42 @@ def test_doubt_unlike_keeps_a_thin_arm_and_stops_at_the_wall():
     assert not doubt_unlike(mask, held, doubtful, np.zeros_like(mask)).any()  # the wall alone: nothing
 
 
+def test_doubt_enclosed_closes_a_smooth_belly_and_keeps_views_through_the_object():
+    """A white belly's lit side in front of the paper: a doubtful hole surrounded by the mask and the
+    unknown, the shading smooth across its rim, is unknown too. A view between an arm and the body,
+    ringed by the outline's edge, stays background; so does a smooth hole showing one pixel of the
+    printed ink (confident background), and the doubtful paper open to the box's border."""
+    from recon.silhouette_doubt import doubt_enclosed
+
+    h, w, tau = 60, 80, 4.0
+    img = np.full((h, w, 3), 200, np.uint8)  # white object, white paper: one shade
+    held = np.zeros((h, w), bool)
+    held[10:50, 10:40] = True  # the body (mask and unknown)
+    belly = np.zeros_like(held)
+    belly[20:30, 25:35] = True  # lit side, the paper's colour
+    held[belly] = False
+    arm = np.zeros_like(held)
+    arm[20:40, 45:65] = True
+    gap = np.zeros_like(held)
+    gap[25:35, 50:60] = True  # the view between arm and body, its outline an edge
+    held |= arm & ~gap
+    img[arm & ~gap] = 170  # the arm's shade: an edge all round the gap
+    doubtful = ~held
+    got = doubt_enclosed(img, held, doubtful, tau)
+    assert got[belly].all()
+    assert not (got & ~belly).any()  # not the gap, not the paper around (open to the border)
+    img[arm & ~gap] = 200  # no edge round the gap: closed as well
+    assert doubt_enclosed(img, held, doubtful, tau)[gap].all()
+    doubtful[30, 55] = False  # ... unless a pixel of it is confident background (ink)
+    got = doubt_enclosed(img, held, doubtful, tau)
+    assert not got[gap].any() and got[belly].all()
+    # 4-connected holes: a diagonal chain of free pixels through the body's wall does not open the belly
+    held2 = held.copy()
+    for k in range(10):
+        held2[19 - k, 24 - k] = False
+    assert doubt_enclosed(img, held2, ~held2, tau)[belly].all()
+
+
 def test_static_votes_keep_a_head_the_masks_hold_and_not_a_poster():
     """36 views. A head pixel: across in 3 views, in the mask in the 30 others (kept: 33 of 36 hold it). A
     part across in 8 views (kept: a fifth or more). A poster pixel: across in 5 views while the object
