@@ -379,6 +379,22 @@ def test_doubt_unlike_keeps_a_thin_arm_and_stops_at_the_wall():
     assert not doubt_unlike(mask, held, doubtful, np.zeros_like(mask)).any()  # the wall alone: nothing
 
 
+def test_a_camera_carried_round_a_still_table_is_refused():
+    """The plates need a camera that stays put while the table turns; a handheld sequence (the camera's
+    height and distance from the axis change) gets a clear error, not empty or wrong silhouettes."""
+    from recon.silhouettes import check_camera_still
+
+    T_cw = _camera_world()
+    still = np.stack([T_cw @ _rot_y(th) for th in np.linspace(0, 2 * np.pi, 8, endpoint=False)])
+    check_camera_still(still)  # a turntable: one circle about the axis
+    moved = still.copy()
+    moved[::2, :3, 3] *= 1.15  # every other photo from 15 % further away
+    with pytest.raises(ValueError, match="camera moves between frames"):
+        check_camera_still(moved)
+    with pytest.raises(ValueError, match="give --masks"):
+        estimate_silhouettes(np.zeros((8, H, W, 3), np.uint8), K, moved, SPEC)
+
+
 def test_doubt_enclosed_closes_a_smooth_belly_and_keeps_views_through_the_object():
     """A white belly's lit side in front of the paper: a doubtful hole surrounded by the mask and the
     unknown, the shading smooth across its rim, is unknown too. A view between an arm and the body,
