@@ -26,9 +26,9 @@ import cv2
 import numpy as np
 from scipy.ndimage import binary_dilation
 
-__all__ = ["Plate", "Evidence", "doubtful_pixels", "texture_match", "colour_dist", "colour_gradient", "plate_envelope",
-           "range_dist", "shadow_dist", "colour_set", "in_set", "MAJOR_SHARE", "doubt_joined", "doubt_across",
-           "doubt_unlike", "doubt_enclosed", "reach"]
+__all__ = ["Plate", "Evidence", "doubtful_pixels", "texture_match", "colour_dist", "colour_gradient", "colour_range",
+           "plate_envelope", "range_dist", "shadow_dist", "colour_set", "in_set", "MAJOR_SHARE", "doubt_joined",
+           "doubt_across", "doubt_unlike", "doubt_enclosed", "reach"]
 
 
 @dataclass(frozen=True)
@@ -95,6 +95,13 @@ def colour_gradient(img: np.ndarray, sigma: float = 1.0) -> np.ndarray:
         grad = np.maximum(grad, cv2.magnitude(cv2.Sobel(smooth[..., c], cv2.CV_32F, 1, 0),
                                               cv2.Sobel(smooth[..., c], cv2.CV_32F, 0, 1)))
     return grad
+
+
+def colour_range(img: np.ndarray) -> np.ndarray:
+    """(h, w) int16: the largest channel's 3 x 3 range (max - min) of ``img`` (h, w, C) uint8: an edge
+    where it reaches ``2 tau`` (:func:`doubt_joined`, :func:`doubt_enclosed`)."""
+    k3 = np.ones((3, 3), np.uint8)
+    return (cv2.dilate(img, k3).astype(np.int16) - cv2.erode(img, k3)).max(axis=-1)
 
 
 def colour_set(samples: np.ndarray, min_count: int = 2) -> np.ndarray:
@@ -197,8 +204,7 @@ def doubt_joined(img: np.ndarray, mask: np.ndarray, doubtful: np.ndarray, paper:
     -> 1.97 % of the diagonal; white figure on a light wall 3.55 -> 2.28 %).
     """
     k3 = np.ones((3, 3), np.uint8)
-    grad = (cv2.dilate(img, k3).astype(np.int16) - cv2.erode(img, k3)).max(axis=-1)
-    smooth = doubtful & ~paper & (grad < 2.0 * tau)
+    smooth = doubtful & ~paper & (colour_range(img) < 2.0 * tau)
     n, lab = cv2.connectedComponents(smooth.astype(np.uint8), connectivity=8)
     keep = np.unique(lab[(cv2.dilate(mask.astype(np.uint8), k3) > 0) & smooth])
     grown = np.isin(lab, keep[keep > 0])
@@ -279,11 +285,9 @@ def doubt_enclosed(img: np.ndarray, held: np.ndarray, doubtful: np.ndarray, tau:
     fill[0] = False  # the held pixels
     fill[np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]])] = False  # open to the box's border
     fill[lab[free & ~doubtful]] = False  # some pixel of it is confident background
-    k3 = np.ones((3, 3), np.uint8)
-    grad = (cv2.dilate(img, k3).astype(np.int16) - cv2.erode(img, k3)).max(axis=-1)
-    rim = free & (cv2.dilate(held.astype(np.uint8), k3) > 0)
+    rim = free & (cv2.dilate(held.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)
     n_rim = np.bincount(lab[rim], minlength=n)
-    n_smooth = np.bincount(lab[rim & (grad < 2.0 * tau)], minlength=n)
+    n_smooth = np.bincount(lab[rim & (colour_range(img) < 2.0 * tau)], minlength=n)
     fill &= n_smooth >= smooth_share * np.maximum(n_rim, 1)
     return fill[lab]
 
