@@ -287,7 +287,6 @@ def _sweep(ref: _Ref, neigh: list[tuple[np.ndarray, np.ndarray, np.ndarray]], z0
            n_samples: int) -> np.ndarray:
     """Aggregated score volume (D, h, w) float32 at depths ``z0 + k dz``, k < D (per pixel, mm)."""
     setups = [(g, *_warp_setup(ref, K_n, T_n)) for g, K_n, T_n in neigh]
-    k_best = max(1, (len(setups) + 1) // 2)
     h, w = ref.I.shape
     vol = np.empty((n_samples, h, w), np.float32)
     for d in range(n_samples):
@@ -300,23 +299,25 @@ def _sweep(ref: _Ref, neigh: list[tuple[np.ndarray, np.ndarray, np.ndarray]], z0
             inside = (mx > 0) & (my > 0) & (mx < g.shape[1] - 1) & (my < g.shape[0] - 1)
             J = cv2.remap(g, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             view_scores.append(_ncc(ref, J, inside))
-        scores = np.stack(view_scores)
-        if k_best < len(scores):
-            scores = -np.partition(-scores, k_best - 1, axis=0)[:k_best]
-        vol[d] = scores.mean(axis=0)
+        vol[d] = _best_half_mean(np.stack(view_scores))
     return vol
 
 
-def _static_score(ref: _Ref, neigh: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:
-    """(h, w) NCC of the reference against its neighbours at the same pixels (no warp: what does not move
-    as the table turns), aggregated over the best half as in :func:`_sweep`."""
-    ys, xs = ref.roi
-    inside = np.ones_like(ref.valid)
-    scores = np.stack([_ncc(ref, np.ascontiguousarray(g[ys, xs]), inside) for g, _, _ in neigh])
+def _best_half_mean(scores: np.ndarray) -> np.ndarray:
+    """(h, w) mean of the best half (rounded up) of the neighbours' scores (n, h, w): one occluded
+    neighbour does not sink a match."""
     k_best = max(1, (len(scores) + 1) // 2)
     if k_best < len(scores):
         scores = -np.partition(-scores, k_best - 1, axis=0)[:k_best]
     return scores.mean(axis=0)
+
+
+def _static_score(ref: _Ref, neigh: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:
+    """(h, w) NCC of the reference against its neighbours at the same pixels (no warp: what does not move
+    as the table turns), aggregated as in :func:`_sweep`."""
+    ys, xs = ref.roi
+    inside = np.ones_like(ref.valid)
+    return _best_half_mean(np.stack([_ncc(ref, np.ascontiguousarray(g[ys, xs]), inside) for g, _, _ in neigh]))
 
 
 def _auto_samples(ref: _Ref, neigh, step_px: float, rng: np.random.Generator) -> int:
