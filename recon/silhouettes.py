@@ -488,7 +488,10 @@ def _frame_mask(img, region, base, plates: Plates, T, tau, verified: bool) -> _F
     ink = texture_match(img, table, tau)
     return _FrameOut(mask, doubtful_pixels(img, mask, region, ev_v, ink, False),
                      doubtful_pixels(img, mask, region, ev_v, ink, True), _outline_support(img, mask, ev, tau),
-                     table.trust & (dist[1] < tau) & (dist[5] < 2.0 * tau),
+                     # (on an island too, where its plate comes from the views on the point's own side and
+                     # this is one of them: paper round a vase's foot, seen from in front of it)
+                     (table.trust | (island & plates.in_arc_in_frame(T, (h, w))))
+                     & (dist[1] < tau) & (dist[5] < 2.0 * tau),
                      # off the table plate's disc, or on it where the plate's colour (or a shadow of it) is not
                      # the pixel's (a head above the plane, seen against the table behind the turntable)
                      region & ~(room_v.trust | table.trust)

@@ -546,3 +546,31 @@ def test_room_plate_vouches_only_for_the_plain_room_it_reaches():
     assert reached[15:25, 105:150].all()  # the wall inside the volume's image
     assert not reached[r < 20].any()  # the object's plain interior (its outline's texture reaches a few px in)
     assert reached[grain][5:-5, 5:-5].all()  # the grain, by its texture
+
+
+def test_table_plate_knows_the_arc_of_views_a_hidden_point_is_seen_from():
+    """A plane point next to an object is hidden from the far side of the turn: most views show the
+    object's colour there. Its plate comes from the views on its own side (paper, trusted), and it
+    says which views those are: what the others show there may be the object in front of it."""
+    from recon.silhouette_plates import table_plate
+
+    V, n = 36, 61
+    rng = np.random.default_rng(5)
+    az = np.radians(np.arange(V) * 10.0)
+    T = np.stack([look_at(450.0 * np.array([np.cos(a) * 0.87, 0.5, np.sin(a) * 0.87]), np.zeros(3)) for a in az])
+    rect = np.clip(225.0 + rng.normal(0.0, 1.0, (V, n, n, 3)), 0, 255).astype(np.uint8)
+    c = (n - 1) // 2
+    side = (slice(c - 3, c + 4), slice(c + 12, c + 20))  # raster (i, j): plane X = j - c > 0, azimuth ~0 deg
+    far = np.abs(np.mod(np.degrees(az) + 180.0, 360.0) - 180.0) > 60.0  # the views from the other side
+    for v in np.flatnonzero(far):
+        rect[v][side] = 150  # the object's colour hides it from there
+    seen = np.ones((V, n, n), bool)
+    tp = table_plate(rect, seen, T, tau=6.0, radius_px=c - 2)
+    inner = (slice(c - 1, c + 2), slice(c + 14, c + 18))  # (3 x 3 envelopes near its edge span both colours)
+    assert tp.trust[side].all()  # the views from its own side agree: paper, trusted
+    assert np.abs(tp.plate[inner].astype(float) - 225.0).max() < 6.0
+    assert tp.in_arc(0.0)[inner].all() and tp.in_arc(80.0)[inner].all()
+    assert not tp.in_arc(180.0)[inner].any() and not tp.in_arc(-110.0)[inner].any()
+    rest = np.ones((n, n), bool)
+    rest[c - 4:c + 5, c + 11:c + 21] = False
+    assert tp.trust[rest].all() and not tp.in_arc(0.0)[rest].any()  # elsewhere every view counted
