@@ -197,8 +197,9 @@ def doubt_joined(img: np.ndarray, mask: np.ndarray, doubtful: np.ndarray, paper:
     object's part that looks exactly like the paper where it stands stays to
     the other views (a plinth's top is not ``paper``: the table plate there is
     an untrusted island, see :func:`recon.silhouette_plates.untrust_enclosed`;
-    the paper round a vase's foot that such an island also holds is, in the
-    views its plate comes from: :meth:`recon.silhouette_plates.TablePlate.in_arc`),
+    the paper round a vase's foot, which such an island also holds, is
+    ``paper`` in the views its plate comes from:
+    :meth:`recon.silhouette_plates.TablePlate.in_arc`),
     like a doubtful part behind an edge
     (a figure's head, its colour a plate's, beyond a shaded neck). Joining
     those across edges as well kept the head but let the unknown run over a

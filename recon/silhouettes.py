@@ -59,9 +59,10 @@ views or more, or in four fifths counting the views whose mask holds them
 (then within 1.5 times that distance: a head beyond a shaded neck), or,
 in a sequence in doubt and once every view has grown so, within 2.5 times
 that distance where a fifth of the views hold them (the upper spheres of a
-snowman beyond the shaded crease under them) (:func:`recon.silhouette_doubt.doubt_across`; a poster
-behind the object reaches it only while the object turns past), with the
-doubtful gaps between them and the object closed. Last, doubtful pixels unlike the
+snowman beyond the shaded crease under them)
+(:func:`recon.silhouette_doubt.doubt_across`; a poster behind the object
+reaches it only while the object turns past), with the doubtful gaps
+between them and the object closed. Last, doubtful pixels unlike the
 background's own colour (a thin arm whose shading turns across it, all
 edge) join where they touch what the frame holds
 (:func:`recon.silhouette_doubt.doubt_unlike`), and holes in what the frame
@@ -515,7 +516,7 @@ def _frame_mask(img, region, base, plates: Plates, T, tau, verified: bool) -> _F
                      doubtful_pixels(img, mask, region, ev_v, ink, True), _outline_support(img, mask, ev, tau),
                      # (on an island too, where its plate comes from the views on the point's own side and
                      # this is one of them: paper round a vase's foot, seen from in front of it)
-                     (table.trust | (island & plates.in_arc_in_frame(T, (h, w))))
+                     (table.trust | ((island & plates.in_arc_in_frame(T, (h, w))) if island.any() else island))
                      & (dist[1] < tau) & (dist[5] < 2.0 * tau),
                      # off the table plate's disc, or on it where the plate's colour (or a shadow of it) is not
                      # the pixel's (a head above the plane, seen against the table behind the turntable)
@@ -637,7 +638,6 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
     status = fill_gaps(status, camera_azimuths_deg(T))
     across = np.zeros_like(unknown)
     across_far = np.zeros_like(unknown)
-    across_wide = np.zeros_like(unknown)
     gap = max(2, round(ACROSS_GAP * math.hypot(W, H)))  # doubt_across: reach across a neck's shaded gap
     far = round(ACROSS_FAR * gap)
     wide = round(ACROSS_WIDE * gap)
@@ -647,6 +647,7 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
     # 0.1 % change of the focal length or of a table-plate texel's trust), and where an ok frame's doubt
     # trusts its mask's colours, the vase's shaded base, missing from them, was carved hollow
     in_doubt = sum(s.startswith("conservative") for s in status) >= SEQUENCE_DOUBT
+    across_wide = np.zeros_like(unknown) if in_doubt else None  # the wider reach: only in a sequence in doubt
     doubtful = {i: outs[i].doubtful_strict if in_doubt or status[i].startswith("conservative") else outs[i].doubtful
                 for i in used}
     for i in used:
@@ -654,7 +655,8 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
         unknown[(i, *box)] = doubt_joined(crops[i], o.mask, doubtful[i], o.paper, tau)
         across[(i, *box)] = doubt_across(o.mask, unknown[(i, *box)], doubtful[i], o.unvouched, gap)
         across_far[(i, *box)] = doubt_across(o.mask, unknown[(i, *box)], doubtful[i], o.unvouched, far)
-        across_wide[(i, *box)] = doubt_across(o.mask, unknown[(i, *box)], doubtful[i], o.unvouched, wide)
+        if across_wide is not None:
+            across_wide[(i, *box)] = doubt_across(o.mask, unknown[(i, *box)], doubtful[i], o.unvouched, wide)
     if used:  # static parts across an edge: where they reach the object in enough views (doubt_across)
         often = static_votes(across[used], masks[used])
         # further from the object only what the masks hold in nearly every view: a head beyond a neck whose
@@ -669,10 +671,12 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
         # beyond the shaded crease under them in the others, which carved them off). Only in a sequence in
         # doubt: run on the rendered textured cup, whose masks are sure, it cost the fusion the cup's carved
         # cavity (fused/hull 0.27 -> 0.65)
-        wide_ok = (unknown[used] | masks[used]).mean(axis=0) >= ACROSS_SHARE
-        for i in used if in_doubt else ():
-            cand = across_wide[i] & wide_ok & ~unknown[i]
-            unknown[i] |= _hold_across(masks[i] | unknown[i], ((cand, wide),), doubtful[i], box) & union & ~masks[i]
+        if across_wide is not None:
+            wide_ok = (unknown[used] | masks[used]).mean(axis=0) >= ACROSS_SHARE
+            for i in used:
+                cand = across_wide[i] & wide_ok & ~unknown[i]
+                unknown[i] |= _hold_across(masks[i] | unknown[i], ((cand, wide),), doubtful[i], box) \
+                    & union & ~masks[i]
     for i in used:  # thin parts beyond an edge, unlike the background (doubt_unlike); then doubtful holes
         u = unknown[(i, *box)]  # joined through smooth shading (doubt_enclosed)
         u |= doubt_unlike(outs[i].mask, u, doubtful[i], outs[i].unlike)
