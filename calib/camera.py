@@ -127,8 +127,9 @@ def circle_points_table(radius_mm: float, n: int = 360) -> np.ndarray:
 
 
 def camera_centre_table(T_cam_table: np.ndarray) -> np.ndarray:
-    """Camera centre in the table frame (3,), mm."""
-    return invert_T(T_cam_table)[:3, 3]
+    """Camera centre in the table frame, mm: (3,) for one pose (4, 4), (V, 3) for poses (V, 4, 4)."""
+    T = np.asarray(T_cam_table, dtype=np.float64)
+    return -np.einsum("...ji,...j->...i", T[..., :3, :3], T[..., :3, 3])
 
 
 def angle_between_deg(a: np.ndarray, b: np.ndarray) -> float:

@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from calib.camera import camera_centre_table
+
 __all__ = ["frame_status", "camera_azimuths_deg", "fill_gaps"]
 
 _MIN_AREA = 0.02  # a silhouette smaller than this fraction of the cylinder's image is "empty"
@@ -66,8 +68,7 @@ def frame_status(area_px: np.ndarray, support: np.ndarray, border_px: np.ndarray
 
 def camera_azimuths_deg(T_cam_table: np.ndarray) -> np.ndarray:
     """Angle (V,) degrees of each camera centre about the table +Y axis, ``atan2(Z, X)`` in the table frame."""
-    T = np.asarray(T_cam_table, np.float64).reshape(-1, 4, 4)
-    C = -np.einsum("vji,vj->vi", T[:, :3, :3], T[:, :3, 3])
+    C = camera_centre_table(np.asarray(T_cam_table, np.float64).reshape(-1, 4, 4))
     return np.degrees(np.arctan2(C[:, 2], C[:, 0]))
 
 

@@ -94,7 +94,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calib.camera import as_K, as_poses, project_points
+from calib.camera import as_K, as_poses, camera_centre_table, project_points
 from calib.target import TargetSpec
 
 from .silhouette_checks import camera_azimuths_deg, fill_gaps, frame_status
@@ -207,7 +207,7 @@ def check_camera_still(T_cam_table: np.ndarray) -> None:
     turns: the room is then the same in every photo and the table's print
     turns with it. Seen from the table, such a camera's centres lie on one
     circle about the axis: a constant height and distance from the axis. A
-    camera carried round a still table (``--mode handheld``) breaks both, and
+    camera carried round a still table (``turntable synth --handheld``) breaks both, and
     the automatic silhouettes came out empty (a coloured vase: an error in
     carving) or wrong (a white vase: 20 of 36 frames rejected, the model 22 %
     of its diagonal off, exit 0).
@@ -215,7 +215,7 @@ def check_camera_still(T_cam_table: np.ndarray) -> None:
     T = np.asarray(T_cam_table, np.float64)
     if len(T) < 3:
         return
-    C = -np.einsum("vji,vj->vi", T[:, :3, :3], T[:, :3, 3])  # camera centres, table frame
+    C = camera_centre_table(T)
     d = float(np.linalg.norm(C, axis=1).mean())
     dy, dr = float(C[:, 1].std()), float(np.hypot(C[:, 0], C[:, 2]).std())
     if max(dy, dr) > CAMERA_STILL * d:
