@@ -169,6 +169,14 @@ def table_plate(rect: np.ndarray, seen: np.ndarray, T: np.ndarray, tau: float, r
     return TablePlate(plate, lo, hi, ((agree >= TRUST) & all_seen).astype(np.uint8), arc_centre, arc_half)
 
 
+def plate_ink(plate: np.ndarray, tau: float) -> np.ndarray:
+    """(n, n) bool: the table plate's texels showing printed ink (or any texture): grey-level 3 x 3
+    spread above ``2 tau``."""
+    g = cv2.cvtColor(plate, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    m = cv2.blur(g, (3, 3))
+    return (cv2.blur(g * g, (3, 3)) - m * m) > (2.0 * tau) ** 2
+
+
 def untrust_enclosed(trust: np.ndarray, plate: np.ndarray, tau: float) -> np.ndarray:
     """The table plate's trust (uint8) less its plain islands: trusted texels that untrusted ones enclose.
 
@@ -201,13 +209,57 @@ def untrust_enclosed(trust: np.ndarray, plate: np.ndarray, tau: float) -> np.nda
     outer = np.zeros(n, bool)
     outer[np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))] = True
     outer[int(np.argmax(sizes))] = True
-    g = cv2.cvtColor(plate, cv2.COLOR_RGB2GRAY).astype(np.float32)
-    m = cv2.blur(g, (3, 3))
-    inked = (cv2.blur(g * g, (3, 3)) - m * m) > (2.0 * tau) ** 2
+    inked = plate_ink(plate, tau)
     ink_share = np.bincount(lab.ravel(), weights=inked.ravel(), minlength=n) / np.maximum(sizes, 1)
     keep = outer | (ink_share > 0.1)
     keep[0] = False
     return (keep[lab] & (t > 0)).astype(np.uint8)
+
+
+GROUND_CHROMA = 0.08  # a printed ground is coloured when its chromaticity is this far from grey's (1/3 each)
+GROUND_SHARE = 0.5  # ... and when this share of the paper's plain texels has its chromaticity
+_GROUND_TOL = 0.04  # chromaticity tolerance of a ground pixel (plus the noise's share at its brightness)
+_GROUND_MIN_SUM = 90.0  # R + G + B: darker pixels' chromaticity is mostly noise
+
+
+def chromaticity(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(..., 3) float32 chromaticity ``rgb / (r + g + b)`` of ``img`` (..., 3) and the sum (...) float32."""
+    f = np.asarray(img, np.float32)
+    total = f.sum(axis=-1)
+    return f / np.maximum(total, 1.0)[..., None], total
+
+
+def printed_ground(plate: np.ndarray, trust: np.ndarray, radius_px: float, tau: float) -> np.ndarray | None:
+    """The chromaticity (3,) of a coloured printed ground, or None where the paper is white or grey.
+
+    The paper is the table plate's trusted, plain texels (no ink: grey-level 3 x 3
+    spread under ``2 tau``) within ``radius_px`` of its centre. Its chromaticity
+    survives shading (a shadow on green paper stays green), so a ground chosen
+    unlike the object (``turntable pattern --background green`` for a white one)
+    tells paper from object wherever the table plate cannot: next to the object,
+    where it hides the paper in most frames.
+    """
+    n = plate.shape[0]
+    ii, jj = np.mgrid[0:n, 0:n]
+    sel = (trust > 0) & ~plate_ink(plate, tau) & (np.hypot(ii - (n - 1) / 2.0, jj - (n - 1) / 2.0) <= radius_px)
+    chroma, total = chromaticity(plate[sel])
+    chroma = chroma[total >= _GROUND_MIN_SUM]
+    if len(chroma) < 100:
+        return None
+    ground = np.median(chroma, axis=0)
+    if np.abs(ground - 1.0 / 3.0).max() < GROUND_CHROMA:
+        return None
+    if np.mean(np.abs(chroma - ground).max(axis=-1) < _GROUND_TOL) < GROUND_SHARE:
+        return None
+    return ground
+
+
+def ground_match(img: np.ndarray, ground: np.ndarray, tau: float, noise: float = 3.0) -> np.ndarray:
+    """(h, w) bool: pixels with the printed ground's chromaticity (:func:`printed_ground`), lit or shaded,
+    within ``_GROUND_TOL`` plus ``noise`` x ``tau`` over the pixel's R + G + B."""
+    chroma, total = chromaticity(img)
+    tol = _GROUND_TOL + noise * tau / np.maximum(total, 1.0)
+    return (total >= _GROUND_MIN_SUM) & (np.abs(chroma - ground).max(axis=-1) < tol)
 
 
 def reached_from_outside(room: np.ndarray, inside: np.ndarray, room_colours: np.ndarray, tau: float) -> np.ndarray:
@@ -263,6 +315,7 @@ class Plates:
         # an island is no room's either: a static object there (a body of revolution) is the room plate too
         self.table_island = (self.table_trust > trust).astype(np.uint8)
         self.table_trust = trust
+        self.ground = printed_ground(self.table, trust, radius_mm * PLANE_PX_PER_MM, tau)
         n = self.table.shape[0]
         ii, jj = np.mgrid[0:n, 0:n]
         self.table_disc = (np.hypot(ii - (n - 1) / 2.0, jj - (n - 1) / 2.0)

@@ -115,7 +115,7 @@ from .silhouette_doubt import (
     shadow_dist,
     texture_match,
 )
-from .silhouette_plates import PLATE_BORDER_MM, Plates, median_frames, rectify_to_table
+from .silhouette_plates import PLATE_BORDER_MM, Plates, ground_match, median_frames, rectify_to_table
 
 __all__ = ["SilhouetteResult", "estimate_silhouettes", "cylinder_region", "rectify_to_table", "worker_threads"]
 
@@ -286,10 +286,14 @@ def _plate_distances(img, room: Plate, table: Plate) -> tuple[np.ndarray, ...]:
 
 
 def _initial_labels(img, region, room: Plate, table: Plate, tau, room_colours,
-                    dist: tuple[np.ndarray, ...] | None = None, room_hard: np.ndarray | None = None) -> Evidence:
+                    dist: tuple[np.ndarray, ...] | None = None, room_hard: np.ndarray | None = None,
+                    ground: tuple[np.ndarray, np.ndarray] | None = None) -> Evidence:
     """GrabCut labels from the plates, and what each pixel's plates say (:class:`Evidence`).
 
     ``dist``: :func:`_plate_distances` of these plates' colours, when already computed.
+    ``ground``: two (h, w) bool, the pixels on the table plate's disc with a coloured printed ground's
+    chromaticity (:func:`recon.silhouette_plates.ground_match`), within the noise's tolerance and
+    within a third of it; None on a white or grey ground.
 
     Where the table plate is trusted it alone decides: it shows the plane point
     behind the pixel as other views saw it, so an object that covers the same
@@ -318,12 +322,25 @@ def _initial_labels(img, region, room: Plate, table: Plate, tau, room_colours,
     # A darker copy of the table plate is a shadow on the paper for sure only in a colour the object
     # does not show: the shaded side of a grey or white object on white paper is a darker copy of
     # the paper too (white vase: the whole body below the horizon was taken for shadow).
+    if ground is not None:  # a coloured ground where the table plate is trusted: paper in a deep shadow
+        sure &= ~(ground[0] & table.trust)
     n_sure = int(sure.sum())
     sure_colours = colour_set(img[sure], min_count=max(3, int(MAJOR_SHARE * n_sure))) if n_sure >= 50 else None
     table_shadow = s_tab < tau
     if sure_colours is not None:
         table_shadow &= ~in_set(img, sure_colours)
     hard = (d_tab < tau) | table_shadow | ((d_room < tau) & (room.strong if room_hard is None else room_hard))
+    if ground is not None:
+        # where the table plate cannot say (the object hides the paper in most frames), the printed
+        # ground's colour can, unless the object shows it: the green disc round a white vase's foot went
+        # to the vase (2.3 % of the diagonal). Hard only where the colour is the ground's within the
+        # strict tolerance: a looser one took blends along a vase's shaded foot, and GrabCut the side.
+        like, strict = (g & ~table.trust & ~sure for g in ground)
+        if sure_colours is not None:
+            object_like = in_set(img, sure_colours)
+            like, strict = like & ~object_like, strict & ~object_like
+        explained = explained | like
+        hard = hard | strict
     k3 = np.ones((3, 3), np.uint8)
     labels = np.full(img.shape[:2], cv2.GC_PR_FGD, np.uint8)
     labels[explained | shadow] = cv2.GC_PR_BGD
@@ -497,12 +514,15 @@ def _frame_mask(img, region, base, plates: Plates, T, tau, verified: bool) -> _F
     room_v = _without(plates.room_verified, island)
     room = room_v if verified else _without(plates.room, island)
     dist = _plate_distances(img, room, table)  # the same for plates.room and plates.room_verified
+    on_plate = plates.plate_in_frame(T, (h, w))
+    ground = None if plates.ground is None else \
+        tuple(on_plate & ground_match(img, plates.ground, tau, noise) for noise in (3.0, 1.0))
     # In a plain room the room plate's explanations are hard only in the room's own colours: inside
     # the volume's image a static object (a plain body of revolution) is part of the plate. (A
     # cluttered room shows too many colours to tell; there the second pass below handles it.)
     plain = plates.room_colours.mean() < _PLAIN_ROOM
     ev = _initial_labels(img, region, room, table, tau, plates.room_colours, dist,
-                         room_v.strong if plain else None)
+                         room_v.strong if plain else None, ground)
     prob = _grabcut(img, ev.labels)
     scale = math.sqrt(h * w / _WORK_PX)
     mask = _refine_outline(prob, ev.explained, ev.disagrees, band_px=max(2, int(math.ceil(scale)) + 1)) & region
@@ -510,7 +530,8 @@ def _frame_mask(img, region, base, plates: Plates, T, tau, verified: bool) -> _F
     mask = _clean(mask, base, ev.explained)
     # For a frame in doubt, the room plate explains only with the room's own colours: it may be
     # the object itself where that covers the same pixels in most frames.
-    ev_v = ev if verified else _initial_labels(img, region, room_v, table, tau, plates.room_colours, dist)
+    ev_v = ev if verified else _initial_labels(img, region, room_v, table, tau, plates.room_colours, dist,
+                                               ground=ground)
     ink = texture_match(img, table, tau)
     return _FrameOut(mask, doubtful_pixels(img, mask, region, ev_v, ink, False),
                      doubtful_pixels(img, mask, region, ev_v, ink, True), _outline_support(img, mask, ev, tau),

@@ -263,7 +263,7 @@ def test_white_box_on_white_paper_is_never_eaten():
     assert min((background & visible_ink)[i].sum() / visible_ink[i].sum() for i in kept) >= 0.5
 
 
-def _white_vase_hull(folder, backdrop: str):
+def _white_vase_hull(folder, backdrop: str, target_background: str = "white"):
     """Hull (trimesh, table frame, mm) of a 12-frame off-white vase render from ``masks | unknown`` of
     the automatic silhouettes with the true cameras, its Chamfer distance to the truth in % of the
     bounding-box diagonal, and the true mesh."""
@@ -276,7 +276,8 @@ def _white_vase_hull(folder, backdrop: str):
     from turntable.synth import SynthOptions, make_sequence
 
     make_sequence(folder, SynthOptions(object="vase", backdrop=backdrop, seed=5, width=W, height=H, focal_px=F_PX,
-                                       albedo=(0.85, 0.84, 0.82), frames=12, step_deg=30.0), overwrite=True)
+                                       albedo=(0.85, 0.84, 0.82), frames=12, step_deg=30.0,
+                                       target_background=target_background), overwrite=True)
     seq = read_cameras(folder / "cameras_gt.json")
     imgs = np.stack([cv2.imread(str(folder / f.image))[..., ::-1] for f in seq.frames])
     T = np.stack([f.T_cam_table for f in seq.frames])
@@ -313,6 +314,42 @@ def test_white_vase_on_a_light_wall_keeps_its_neck_and_lip(tmp_path):
     m, chamfer_pct, gt = _white_vase_hull(tmp_path / "white_vase_light", "light")
     assert m.bounds[1][1] >= 0.95 * gt.bounds[1][1], m.bounds[1][1]  # the lip is there
     assert chamfer_pct <= 4.5, chamfer_pct
+
+
+def test_white_vase_on_the_green_ground_leaves_the_paper_round_its_foot(tmp_path):
+    """The same vase on the target printed on a green ground (``turntable pattern --background green``,
+    what the README tells a user to print for a white object). The vase hides the paper round its foot
+    in most frames, so no table plate is trusted there; the ground's colour still says it is paper,
+    which the vase never shows. Measured at this size: 1.41 % of the diagonal (before the ground was
+    recognised: the green disc inside the inner ring and the vase's shadow went to the vase, 4.13 %)."""
+    _, chamfer_pct, _ = _white_vase_hull(tmp_path / "white_vase_green", "dark", "green")
+    assert chamfer_pct <= 2.0, chamfer_pct
+
+
+def test_printed_ground_is_recognised_lit_or_shaded_and_only_when_coloured():
+    """A coloured printed ground's chromaticity comes from the trusted, plain paper of the table plate (not
+    its ink, not the untrusted texels); a pixel of that ground matches lit or in a shadow, a white or grey
+    object's pixel does not, nor a pixel too dark for its colour to be more than noise. A white or grey
+    paper is no coloured ground."""
+    from recon.silhouette_plates import ground_match, printed_ground
+
+    n = 200
+    rng = np.random.default_rng(7)
+    green = np.array([91.0, 200.0, 91.0])
+    plate = np.clip(green + rng.normal(0.0, 2.0, (n, n, 3)), 0, 255).astype(np.uint8)
+    plate[::10, :] = 20  # ink lines
+    trust = np.ones((n, n), np.uint8)
+    trust[80:120, 80:120] = 0
+    plate[80:120, 80:120] = 230  # untrusted: the object's colour where it hides the paper
+    ground = printed_ground(plate, trust, radius_px=100.0, tau=6.0)
+    assert ground is not None
+    assert np.abs(ground - green / green.sum()).max() < 0.01
+    img = np.array([[[91, 200, 91], [36, 80, 36], [230, 230, 225], [120, 121, 118], [8, 20, 8], [200, 200, 91]]],
+                   np.uint8)
+    assert ground_match(img, ground, tau=6.0).tolist() == [[True, True, False, False, False, False]]
+    for paper in ([235.0, 233.0, 225.0], [150.0, 150.0, 150.0]):
+        grey = np.clip(np.array(paper) + rng.normal(0.0, 2.0, (n, n, 3)), 0, 255).astype(np.uint8)
+        assert printed_ground(grey, trust, radius_px=100.0, tau=6.0) is None
 
 
 def test_doubt_joined_keeps_a_shaded_side_and_stops_at_the_wall():
