@@ -292,8 +292,8 @@ def _initial_labels(img, region, room: Plate, table: Plate, tau, room_colours,
 
     ``dist``: :func:`_plate_distances` of these plates' colours, when already computed.
     ``ground``: two (h, w) bool, the pixels on the table plate's disc with a coloured printed ground's
-    chromaticity (:func:`recon.silhouette_plates.ground_match`), within the noise's tolerance and
-    within a third of it; None on a white or grey ground.
+    chromaticity (:func:`recon.silhouette_plates.ground_match`), loose (``noise=3``) and strict
+    (``noise=1``); None on a white or grey ground.
 
     Where the table plate is trusted it alone decides: it shows the plane point
     behind the pixel as other views saw it, so an object that covers the same
