@@ -27,8 +27,8 @@ import numpy as np
 from scipy.ndimage import binary_dilation
 
 __all__ = ["Plate", "Evidence", "doubtful_pixels", "texture_match", "colour_dist", "colour_gradient", "colour_range",
-           "plate_envelope", "range_dist", "shadow_dist", "colour_set", "in_set", "MAJOR_SHARE", "doubt_joined",
-           "doubt_across", "doubt_unlike", "doubt_enclosed", "reach"]
+           "plate_envelope", "range_dist", "shadow_dist", "colour_set", "in_set", "major_colours", "MAJOR_SHARE",
+           "doubt_joined", "doubt_across", "doubt_unlike", "doubt_enclosed", "reach"]
 
 
 @dataclass(frozen=True)
@@ -114,6 +114,13 @@ def colour_set(samples: np.ndarray, min_count: int = 2) -> np.ndarray:
     return binary_dilation(seen, np.ones((3, 3, 3), bool))
 
 
+def major_colours(img: np.ndarray, sel: np.ndarray) -> np.ndarray | None:
+    """:func:`colour_set` of the pixels of ``img`` at ``sel`` that fill at least ``MAJOR_SHARE`` of them
+    (not a few dark crevices), or None where fewer than 50 are selected."""
+    n = int(sel.sum())
+    return colour_set(img[sel], min_count=max(3, int(MAJOR_SHARE * n))) if n >= 50 else None
+
+
 def in_set(img: np.ndarray, colours: np.ndarray) -> np.ndarray:
     """(...) bool: whether each pixel of ``img`` (..., 3) uint8 has a colour of the set."""
     q = (img // _BIN).astype(np.intp)
@@ -172,9 +179,9 @@ def doubtful_pixels(img, mask, region, ev: Evidence, ink: np.ndarray, plates_onl
     # a frame in doubt may have missed most of the object: what no plate explains may be it too
     obj = mask | (region & ~ev.explained) if plates_only else mask
     # the object's colours: those of at least 0.2 % of its pixels (not a few dark crevices)
-    n_obj = int(obj.sum())
-    object_colours = colour_set(img[obj], min_count=max(3, int(MAJOR_SHARE * n_obj))) if n_obj >= 50 else \
-        np.zeros((32,) * 3, bool)
+    object_colours = major_colours(img, obj)
+    if object_colours is None:
+        object_colours = np.zeros((32,) * 3, bool)
     known = ev.tight if plates_only else ev.tight | ~ev.trusted
     confident = ~in_set(img, object_colours) & known
     confident |= ink

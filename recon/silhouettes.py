@@ -99,7 +99,6 @@ from calib.target import TargetSpec
 
 from .silhouette_checks import camera_azimuths_deg, fill_gaps, frame_status
 from .silhouette_doubt import (
-    MAJOR_SHARE,
     Evidence,
     Plate,
     colour_dist,
@@ -110,6 +109,7 @@ from .silhouette_doubt import (
     doubt_unlike,
     doubtful_pixels,
     in_set,
+    major_colours,
     range_dist,
     reach,
     shadow_dist,
@@ -324,8 +324,7 @@ def _initial_labels(img, region, room: Plate, table: Plate, tau, room_colours,
     # the paper too (white vase: the whole body below the horizon was taken for shadow).
     if ground is not None:  # a coloured ground where the table plate is trusted: paper in a deep shadow
         sure &= ~(ground[0] & table.trust)
-    n_sure = int(sure.sum())
-    sure_colours = colour_set(img[sure], min_count=max(3, int(MAJOR_SHARE * n_sure))) if n_sure >= 50 else None
+    sure_colours = major_colours(img, sure)
     table_shadow = s_tab < tau
     if sure_colours is not None:
         table_shadow &= ~in_set(img, sure_colours)
@@ -533,11 +532,10 @@ def _frame_mask(img, region, base, plates: Plates, T, tau, verified: bool) -> _F
     ev_v = ev if verified else _initial_labels(img, region, room_v, table, tau, plates.room_colours, dist,
                                                ground=ground)
     ink = texture_match(img, table, tau)
-    if ground is not None and int(mask.sum()) >= 50:
+    if ground is not None and (seen := major_colours(img, mask)) is not None:
         # confident too, as the ink: the printed ground's colour lit or in a shadow, where the mask does not
         # show it (the figure's cast shadow on the green paper was doubtful, not the paper's own colour
         # there, and the unknown took it: a mound round the feet, 1.06 -> 0.97 % on a light wall)
-        seen = colour_set(img[mask], min_count=max(3, int(MAJOR_SHARE * int(mask.sum()))))
         ink = ink | (ground[1] & ~in_set(img, seen))
     return _FrameOut(mask, doubtful_pixels(img, mask, region, ev_v, ink, False),
                      doubtful_pixels(img, mask, region, ev_v, ink, True), _outline_support(img, mask, ev, tau),
