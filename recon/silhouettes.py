@@ -546,7 +546,7 @@ def _frame_mask(img, region, base, plates: Plates, T, tau, verified: bool) -> _F
                      # off the table plate's disc, or on it where the plate's colour (or a shadow of it) is not
                      # the pixel's (a head above the plane, seen against the table behind the turntable)
                      region & ~(room_v.trust | table.trust)
-                     & ~(plates.plate_in_frame(T, (h, w)) & ((dist[1] < tau) | (dist[3] < tau))),
+                     & ~(on_plate & ((dist[1] < tau) | (dist[3] < tau))),
                      (ev_v.trusted & ~ev_v.tight) | (~ev_v.trusted & (dist[4] > 2.0 * tau)))
 
 
