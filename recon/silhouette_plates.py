@@ -39,6 +39,18 @@ def raster_to_table(size_px: int, px_per_mm: float) -> np.ndarray:
     return np.array([[1.0 / px_per_mm, 0.0, -c / px_per_mm], [0.0, 1.0 / px_per_mm, -c / px_per_mm], [0.0, 0.0, 1.0]])
 
 
+def raster_radius_px(size_px: int) -> np.ndarray:
+    """(N, N) float64: each raster pixel's distance from the raster's centre (the table's origin), in pixels."""
+    c = (size_px - 1) / 2.0
+    ii, jj = np.mgrid[0:size_px, 0:size_px]
+    return np.hypot(ii - c, jj - c)
+
+
+def azimuth_gap_deg(a, b) -> np.ndarray:
+    """|a - b| in degrees on the circle, in [0, 180] (broadcast)."""
+    return np.abs(np.mod(np.asarray(a) - b + 180.0, 360.0) - 180.0)
+
+
 def rectify_to_table(image: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, radius_mm: float,
                      px_per_mm: float) -> np.ndarray:
     """The table plane around the origin as a square raster, seen from above.
@@ -89,7 +101,7 @@ class TablePlate(NamedTuple):
     def in_arc(self, azimuth_deg: float) -> np.ndarray:
         """(n, n) bool: the points whose plate comes from the views on their own side, the view from
         ``azimuth_deg`` (:func:`recon.silhouette_checks.camera_azimuths_deg`) among them."""
-        d = np.abs(np.mod(azimuth_deg - self.arc_centre_deg + 180.0, 360.0) - 180.0)
+        d = azimuth_gap_deg(azimuth_deg, self.arc_centre_deg)
         return (self.arc_half_deg < 360.0) & (d <= self.arc_half_deg)
 
 
@@ -128,7 +140,7 @@ def table_plate(rect: np.ndarray, seen: np.ndarray, T: np.ndarray, tau: float, r
     phi = np.degrees(np.arctan2(ii - c, jj - c))  # raster (i, j) is the plane point X = j - c, Z = i - c
     nb = int(round(360.0 / ARC_BIN_DEG))
     bins = np.floor(np.mod(phi + 180.0, 360.0) / ARC_BIN_DEG).astype(int) % nb
-    bins[np.hypot(ii - c, jj - c) > radius_px] = nb  # beyond the volume: one group, every view
+    bins[raster_radius_px(n) > radius_px] = nb  # beyond the volume: one group, every view
     least = min(V, max(5, int(math.ceil(V / 3))))
     full = median_frames(rect)
     lo_f, hi_f = plate_envelope(full)
@@ -141,7 +153,7 @@ def table_plate(rect: np.ndarray, seen: np.ndarray, T: np.ndarray, tau: float, r
     centres = -180.0 + (np.arange(nb + 1) + 0.5) * ARC_BIN_DEG
     halves = np.full(nb + 1, 360.0)
     for b in range(nb):
-        d = np.abs(np.mod(cam - centres[b] + 180.0, 360.0) - 180.0)
+        d = azimuth_gap_deg(cam, centres[b])
         sel = np.flatnonzero(d <= ARC_DEG)
         if len(sel) < least:
             sel = np.argsort(d, kind="stable")[:least]
@@ -239,9 +251,7 @@ def printed_ground(plate: np.ndarray, trust: np.ndarray, radius_px: float, tau: 
     tells paper from object wherever the table plate cannot: next to the object,
     where it hides the paper in most frames.
     """
-    n = plate.shape[0]
-    ii, jj = np.mgrid[0:n, 0:n]
-    sel = (trust > 0) & ~plate_ink(plate, tau) & (np.hypot(ii - (n - 1) / 2.0, jj - (n - 1) / 2.0) <= radius_px)
+    sel = (trust > 0) & ~plate_ink(plate, tau) & (raster_radius_px(plate.shape[0]) <= radius_px)
     chroma, total = chromaticity(plate[sel])
     chroma = chroma[total >= _GROUND_MIN_SUM]
     if len(chroma) < 100:
@@ -316,9 +326,7 @@ class Plates:
         self.table_island = (self.table_trust > trust).astype(np.uint8)
         self.table_trust = trust
         self.ground = printed_ground(self.table, trust, radius_mm * PLANE_PX_PER_MM, tau)
-        n = self.table.shape[0]
-        ii, jj = np.mgrid[0:n, 0:n]
-        self.table_disc = (np.hypot(ii - (n - 1) / 2.0, jj - (n - 1) / 2.0)
+        self.table_disc = (raster_radius_px(self.table.shape[0])
                            <= self.plane_radius * PLANE_PX_PER_MM).astype(np.uint8)  # the plate's disc
         self.K, self.box = K, box
 
