@@ -148,12 +148,18 @@ class SilhouetteResult:
         ``unknown``) or ``"rejected: <reason>"`` (leave the frame out). No gap
         of more than 30 deg of the turn between kept frames is opened by a
         rejection (see :mod:`recon.silhouette_checks`).
+    ground : (3,) tuple of float or None
+        The chromaticity (``rgb / (r + g + b)``) of the target's printed ground
+        where it is coloured (``turntable pattern --background green``) and was
+        recognised on the paper; the silhouettes then tell paper from object by
+        it next to the object. None on a white or grey ground.
     """
 
     masks: np.ndarray
     unknown: np.ndarray
     quality: np.ndarray
     status: tuple[str, ...]
+    ground: tuple[float, float, float] | None = None
 
 
 def cylinder_region(K: np.ndarray, T_cam_table: np.ndarray, size: tuple[int, int], radius_mm: float,
@@ -706,4 +712,5 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
         u = unknown[(i, *box)]  # joined through smooth shading (doubt_enclosed)
         u |= doubt_unlike(outs[i].mask, u, doubtful[i], outs[i].unlike)
         u |= doubt_enclosed(crops[i], outs[i].mask | u, doubtful[i], tau)
-    return SilhouetteResult(masks=masks, unknown=unknown, quality=quality, status=status)
+    ground = None if plates.ground is None else tuple(float(c) for c in plates.ground)
+    return SilhouetteResult(masks=masks, unknown=unknown, quality=quality, status=status, ground=ground)

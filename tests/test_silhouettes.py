@@ -266,7 +266,7 @@ def test_white_box_on_white_paper_is_never_eaten():
 def _white_vase_hull(folder, backdrop: str, target_background: str = "white"):
     """Hull (trimesh, table frame, mm) of a 12-frame off-white vase render from ``masks | unknown`` of
     the automatic silhouettes with the true cameras, its Chamfer distance to the truth in % of the
-    bounding-box diagonal, and the true mesh."""
+    bounding-box diagonal, the true mesh and the printed ground the silhouettes recognised."""
     trimesh = pytest.importorskip("trimesh")
     from scipy.spatial import cKDTree
 
@@ -289,7 +289,7 @@ def _white_vase_hull(folder, backdrop: str, target_background: str = "white"):
     m = trimesh.Trimesh(mesh.vertices_table, mesh.faces, process=False)
     a, b = m.sample(20000, seed=0), gt.sample(20000, seed=0)
     chamfer = 0.5 * (cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
-    return m, 100.0 * chamfer / float(np.linalg.norm(gt.bounds[1] - gt.bounds[0])), gt
+    return m, 100.0 * chamfer / float(np.linalg.norm(gt.bounds[1] - gt.bounds[0])), gt, res.ground
 
 
 def test_white_vase_on_white_paper_keeps_its_hull(tmp_path):
@@ -300,7 +300,8 @@ def test_white_vase_on_white_paper_keeps_its_hull(tmp_path):
     copy of the paper, was also taken for its shadow. The hull carved from ``masks | unknown`` must
     stay close to the true vase (measured 1.05 % of the bounding box diagonal at this size; before:
     3.5 %, with flakes over the paper)."""
-    _, chamfer_pct, _ = _white_vase_hull(tmp_path / "white_vase", "dark")
+    _, chamfer_pct, _, ground = _white_vase_hull(tmp_path / "white_vase", "dark")
+    assert ground is None  # white paper: no coloured ground to report
     assert chamfer_pct <= 2.0, chamfer_pct
 
 
@@ -311,7 +312,7 @@ def test_white_vase_on_a_light_wall_keeps_its_neck_and_lip(tmp_path):
     and they reach the object in a fifth of the views or more (``doubt_across``), so the hull keeps the
     vase's full height (measured at this size: top 115.6 mm for 110, Chamfer 3.5 % of the diagonal;
     before: the neck carved off at 78.5 mm, 5.3 %)."""
-    m, chamfer_pct, gt = _white_vase_hull(tmp_path / "white_vase_light", "light")
+    m, chamfer_pct, gt, _ = _white_vase_hull(tmp_path / "white_vase_light", "light")
     assert m.bounds[1][1] >= 0.95 * gt.bounds[1][1], m.bounds[1][1]  # the lip is there
     assert chamfer_pct <= 4.5, chamfer_pct
 
@@ -322,8 +323,12 @@ def test_white_vase_on_the_green_ground_leaves_the_paper_round_its_foot(tmp_path
     in most frames, so no table plate is trusted there; the ground's colour still says it is paper,
     which the vase never shows. Measured at this size: 1.32 % of the diagonal (before the ground was
     recognised: the green disc inside the inner ring and the vase's shadow went to the vase, 4.13 %)."""
-    _, chamfer_pct, _ = _white_vase_hull(tmp_path / "white_vase_green", "dark", "green")
+    _, chamfer_pct, _, ground = _white_vase_hull(tmp_path / "white_vase_green", "dark", "green")
     assert chamfer_pct <= 2.0, chamfer_pct
+    # and the result says so (the run's notes and summary name it)
+    from turntable.stages.silhouettes import ground_name
+
+    assert ground is not None and ground_name(ground) == "green", ground
 
 
 def test_printed_ground_is_recognised_lit_or_shaded_and_only_when_coloured():
@@ -350,6 +355,24 @@ def test_printed_ground_is_recognised_lit_or_shaded_and_only_when_coloured():
     for paper in ([235.0, 233.0, 225.0], [150.0, 150.0, 150.0]):
         grey = np.clip(np.array(paper) + rng.normal(0.0, 2.0, (n, n, 3)), 0, 255).astype(np.uint8)
         assert printed_ground(grey, trust, radius_px=100.0, tau=6.0) is None
+
+
+def test_a_recognised_ground_is_named_and_shown_in_the_summary():
+    """The recognised ground's chromaticity is named by its hue (a printed green photographs as green, a blue
+    as blue) and shown on its own summary line, which a summary without one does not print."""
+    from turntable.stages.silhouettes import ground_name
+    from turntable.stages.summary import ReconstructSummary
+
+    assert [ground_name(c) for c in ((0.24, 0.53, 0.23), (0.22, 0.32, 0.46), (0.47, 0.28, 0.25))] == \
+        ["green", "blue", "red"]
+    d = {"frames_used": 12, "focal_px": 750.0, "fusion": "hull kept", "time_s": {"total": 1.0},
+         "mesh": {"vertices": 4, "faces": 4, "watertight": True, "volume_cm3": 1.0, "extent_mm": [1, 1, 1]},
+         "silhouettes": {"rejected": {}, "conservative": {},
+                         "printed_ground": {"colour": "green", "chromaticity": [0.2421, 0.5252, 0.2327]}}}
+    shown = [line for line in ReconstructSummary.from_json(d).lines() if "printed ground" in line]
+    assert len(shown) == 1 and "green, chromaticity 0.24 0.53 0.23" in shown[0], shown
+    del d["silhouettes"]["printed_ground"]
+    assert not any("printed ground" in line for line in ReconstructSummary.from_json(d).lines())
 
 
 def test_doubt_joined_keeps_a_shaded_side_and_stops_at_the_wall():

@@ -18,6 +18,24 @@ class Silhouettes:
     masks: np.ndarray  # (V, H, W) bool: object
     unknown: np.ndarray  # (V, H, W) bool: neither object nor background for sure (carving keeps it)
     status: list[str]  # "ok", "conservative: <reason>" (kept) or "rejected: <reason>" (dropped)
+    ground: tuple[float, float, float] | None = None  # a coloured printed ground's chromaticity, recognised
+
+
+def ground_name(chroma) -> str:
+    """The hue of a printed ground's chromaticity (r, g, b summing to 1) in words: red, yellow, green, cyan,
+    blue or magenta (what the camera saw: a printed green may photograph a little cyan)."""
+    import colorsys
+
+    hue = colorsys.rgb_to_hsv(*(float(c) for c in chroma))[0]
+    names = ("red", "yellow", "green", "cyan", "blue", "magenta")
+    return names[int(round(hue * 6.0)) % 6]
+
+
+def describe_ground(chroma) -> str:
+    """One line on a recognised coloured ground (the run's notes and the summary)."""
+    r, g, b = (float(c) for c in chroma)
+    return (f"the target's printed ground is coloured ({ground_name(chroma)}, chromaticity {r:.2f} {g:.2f} {b:.2f}): "
+            "next to the object the paper is told by its colour")
 
 
 def read_masks(masks_dir: Path, names: list[str], ws: WorkSize,
@@ -89,7 +107,11 @@ def silhouettes_stage(images_rgb, names, K, Ts, opts, cache, key, progress, vol,
     hit = cache.load("silhouettes", key, fields)
     if hit is not None:
         progress.note("silhouettes: reused")
-        return Silhouettes(hit["masks"], hit["unknown"], [str(s) for s in hit["status"]])
+        # (a cache written before the ground was kept has none: nothing recognised to report)
+        kept = np.asarray(hit.get("ground", ()), float).ravel()
+        ground = tuple(float(c) for c in kept) if kept.shape == (3,) and np.isfinite(kept).all() else None
+        return Silhouettes(hit["masks"], hit["unknown"], [str(s) for s in hit["status"]], ground)
+    ground = None
     with progress.stage("silhouettes") as tick:
         if opts.masks_dir is not None:
             masks, empty = read_masks(opts.masks_dir, names, ws, progress)
@@ -108,8 +130,12 @@ def silhouettes_stage(images_rgb, names, K, Ts, opts, cache, key, progress, vol,
                 raise UserError(f"{opts.input}: silhouettes: {exc}") from None
             masks, status = np.asarray(res.masks, bool), list(res.status)
             unknown = np.asarray(res.unknown, bool)
-    cache.save("silhouettes", key, masks=masks, unknown=unknown, status=np.array(status))
-    return Silhouettes(masks, unknown, status)
+            ground = res.ground
+            if ground is not None:
+                progress.note(f"silhouettes: {describe_ground(ground)}")
+    cache.save("silhouettes", key, masks=masks, unknown=unknown, status=np.array(status),
+               ground=np.array(ground if ground is not None else (), float))
+    return Silhouettes(masks, unknown, status, ground)
 
 
 GREY = ("the photos are greyscale: automatic silhouettes tell the object from the table and the background "

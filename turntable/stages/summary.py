@@ -8,6 +8,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from .silhouettes import describe_ground, ground_name
+
 __all__ = ["MeshSummary", "ReconstructSummary", "failed_checks", "summarise"]
 
 
@@ -39,7 +41,8 @@ class ReconstructSummary:
     """What a run made and how it went: the same in ``summary.json`` and on screen.
 
     ``working_volume`` is the hull stage's report (radius, height, how it grew, what was clipped),
-    ``silhouettes`` the frames ``rejected`` and kept ``conservative`` with their reasons,
+    ``silhouettes`` the frames ``rejected`` and kept ``conservative`` with their reasons (and
+    ``printed_ground``, its hue and chromaticity, where a coloured printed ground was recognised),
     ``exif_focal`` the photos' EXIF focal length against the calibrated one (or None),
     ``work_size`` the size the stages after calibration ran at, ``time_s`` each stage's wall time
     and the ``total``, ``files`` what OUT holds (paths as published), ``texture`` the photo texture's
@@ -130,6 +133,9 @@ class ReconstructSummary:
             out += [f"  note            {note}" for note in v.get("notes", [])]
         out += [f"  conservative    {name}: {why}"
                 for name, why in (self.silhouettes or {}).get("conservative", {}).items()]
+        ground = (self.silhouettes or {}).get("printed_ground")
+        if ground:
+            out.append(f"  printed ground  {describe_ground(ground['chromaticity'])}")
         out.append(f"  fusion          {self.fusion}")
         out.append("  time            " + ", ".join(f"{k} {t:.1f} s" for k, t in self.time_s.items()))
         out += [f"  {k:<15} {p}" for k, p in sorted(self.files.items())]
@@ -158,7 +164,10 @@ def summarise(*, out, seq, names, skipped, mesh, stats, fusion_note, carved, fai
                          extent_mm=[float(v) for v in hi - lo], pieces=int(stats.n_bodies)),
         fusion=fusion_note, warnings=list(diagnostics.warnings) if diagnostics is not None else [],
         working_volume=carved.report,
-        silhouettes={"rejected": dict(carved.rejected), "conservative": dict(carved.conservative)},
+        silhouettes={"rejected": dict(carved.rejected), "conservative": dict(carved.conservative),
+                     **({} if carved.silhouettes.ground is None else
+                        {"printed_ground": {"colour": ground_name(carved.silhouettes.ground),
+                                            "chromaticity": [round(float(c), 4) for c in carved.silhouettes.ground]}})},
         failed_checks=list(failed), exif_focal=exif, work_size=work_size,
         time_s={k: round(v, 2) for k, v in times_s.items()},
         files={k: frame_name(str(v)) for k, v in files.items()},  # strict JSON whatever the path
