@@ -32,7 +32,7 @@ import numpy as np
 import scipy.sparse as sp
 import trimesh
 
-from calib.camera import as_K, as_poses
+from calib.camera import as_K, as_poses, camera_centre_table
 
 from .raycast import first_hits, raycasting_scene
 from .types import TableMesh
@@ -174,7 +174,7 @@ def _view_samples(scene, V, normals, K, T, hw, mask, min_cos, tol):
     """Indices (n,), pixel positions ``uv_px`` (n, 2) and weights (n,) of the cleanly seen vertices."""
     H, W = hw
     R, t = T[:3, :3], T[:3, 3]
-    C = -R.T @ t  # camera centre, table frame
+    C = camera_centre_table(T)
     to_cam = C - V
     d = np.linalg.norm(to_cam, axis=1)
     cos = np.einsum("ij,ij->i", normals, to_cam) / np.maximum(d, 1e-12)

@@ -38,6 +38,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from calib.camera import camera_centre_table
+
 from .fileio import atomic_write_bytes
 
 __all__ = ["export_colmap", "export_nerfstudio", "ColmapTracks", "surface_tracks", "project_photo_px",
@@ -323,7 +325,7 @@ def surface_tracks(
     uv_all = np.full((len(P), len(Ts), 2), np.nan)
     for v, T in enumerate(Ts):
         uv, ideal, z = project_photo_px(K, dist, T, P)
-        centre = -T[:3, :3].T @ T[:3, 3]
+        centre = camera_centre_table(T)
         facing = np.einsum("pd,pd->p", normals, centre - P) > 0  # the closest face turns towards the camera
         idx = np.flatnonzero((z > 1.0) & facing & _in_image(uv, W, H) & _in_image(ideal, W, H, margin=0.25))
         d = P[idx] - centre  # the ray reaches the point at parameter 1

@@ -19,7 +19,7 @@ from typing import NamedTuple, cast
 import cv2
 import numpy as np
 
-from calib.camera import plane_homography
+from calib.camera import camera_centre_table, plane_homography
 
 from .silhouette_checks import camera_azimuths_deg
 from .silhouette_doubt import Plate, colour_dist, colour_gradient, in_set, plate_envelope, range_dist
@@ -80,7 +80,7 @@ def below_horizon(K, T, box, size_hw) -> np.ndarray:
     u = np.arange(x0, x0 + w, dtype=np.float64)
     v = np.arange(y0, y0 + h, dtype=np.float64)
     dy = a[0] * u[None, :] + a[1] * v[:, None] + a[2]
-    cam_above = (-T[:3, :3].T @ T[:3, 3])[1] > 0
+    cam_above = camera_centre_table(T)[1] > 0
     return dy < 0 if cam_above else dy > 0
 
 

@@ -43,6 +43,8 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
+from calib.camera import camera_centre_table
+
 from .raycast import first_hits, pixel_rays_table, raycasting_scene
 from .types import DepthMap, TableMesh, VoxelHull
 
@@ -165,7 +167,7 @@ def hull_depth_range(hull_or_mesh, K: np.ndarray, T_cam_table: Sequence[np.ndarr
             u, v = np.meshgrid(np.arange(xs.start, xs.stop, dtype=np.float64),
                                np.arange(ys.start, ys.stop, dtype=np.float64))
             dirs = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(Ks).T @ T[:3, :3]
-            centre = -T[:3, :3].T @ T[:3, 3]
+            centre = camera_centre_table(T)
             # farthest possible depth: bounding-box corners in the camera frame
             t_far = float((corners @ T[:3, :3].T + T[:3, 3])[:, 2].max()) + 10.0
             rays = np.concatenate([np.broadcast_to(centre, dirs.shape), dirs], axis=-1).astype(np.float32)
@@ -204,7 +206,7 @@ def select_neighbours(T_cam_table: np.ndarray, neighbours: int, *, min_angle_deg
     skipped. Returns one index list per view, nearest first.
     """
     Ts = np.asarray(T_cam_table, float).reshape(-1, 4, 4)
-    centres = np.stack([-T[:3, :3].T @ T[:3, 3] for T in Ts])
+    centres = camera_centre_table(Ts)
     dirs = centres / np.linalg.norm(centres, axis=1, keepdims=True)
     ang = np.degrees(np.arccos(np.clip(dirs @ dirs.T, -1.0, 1.0)))
     out = []

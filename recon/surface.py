@@ -58,6 +58,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import ndimage
 
+from calib.camera import camera_centre_table
+
 from .raycast import render_depth
 from .types import DepthMap, FusedPoints, TableMesh, VoxelHull
 
@@ -124,7 +126,7 @@ def splat_depth(points: FusedPoints, K: np.ndarray, T_cam_table: np.ndarray, siz
     W, H = size
     w, h = (W + stride - 1) // stride, (H + stride - 1) // stride
     T = np.asarray(T_cam_table, float)
-    centre = -T[:3, :3].T @ T[:3, 3]
+    centre = camera_centre_table(T)
     p = np.asarray(points.pts_table, float)
     facing = np.sum(np.asarray(points.normals_table) * (centre - p), axis=1) > 0
     pc = p[facing] @ T[:3, :3].T + T[:3, 3]
@@ -256,7 +258,7 @@ def _integrate(pts, zbufs, K_sub, Ts, tau, delta, progress):
         acc[sel_u] += np.maximum(phi[upd], -tau)
         cnt[sel_u] += 1.0
         n_free[sel_f] += 1
-        cam_y = float((-T[:3, :3].T @ T[:3, 3])[1])
+        cam_y = float(camera_centre_table(T)[1])
         n_down[sel_f[pts[sel_f, 1] < cam_y]] += 1
         if progress is not None:
             progress(i + 1, len(Ts))

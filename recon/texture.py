@@ -66,7 +66,7 @@ import cv2
 import numpy as np
 import trimesh
 
-from calib.camera import as_K, as_poses
+from calib.camera import as_K, as_poses, camera_centre_table
 
 from .atlas import (
     ATLAS_FILL,
@@ -335,7 +335,7 @@ def _facing_faces(V: np.ndarray, F: np.ndarray, T: np.ndarray, min_cos: float) -
     A face's corners are tested with the face normal; one corner passing (at half ``min_cos``, for the
     interpolated normals) keeps the face.
     """
-    C = -T[:3, :3].T @ T[:3, 3]
+    C = camera_centre_table(T)
     tri = V[F]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
@@ -406,7 +406,7 @@ def _view_maps(scene, V: np.ndarray, K: np.ndarray, T: np.ndarray, hw, mask, tol
     u, v = np.meshgrid(np.arange(x0, x1, dtype=np.float64), np.arange(y0, y1, dtype=np.float64))
     d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
     d_cam[..., 0] -= K[0, 1] / K[0, 0] * d_cam[..., 1]
-    C = -R.T @ t
+    C = camera_centre_table(T)
     rays = np.concatenate([np.broadcast_to(C, d_cam.shape), d_cam @ R], -1).astype(np.float32)
     z = first_hits(scene, rays)
     depth = np.where(np.isfinite(z), z, 0.0).astype(np.float32)
@@ -442,7 +442,7 @@ def _view_samples(tex: _Texels, sel: np.ndarray, image: np.ndarray, maps: _ViewM
                   lut: np.ndarray, min_cos: float, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The texels ``sel`` one view sees (see the module docstring): indices into the texels, weights, linear RGB."""
     R, t = T[:3, :3].astype(np.float32), T[:3, 3].astype(np.float32)
-    C = -R.T @ t
+    C = camera_centre_table(T).astype(np.float32)
     P = tex.pts[sel]
     to_cam = C - P
     d = np.sqrt(np.einsum("pd,pd->p", to_cam, to_cam))
@@ -553,11 +553,11 @@ def render_albedo(mesh: TableMesh, K: np.ndarray, T_cam_table: np.ndarray, size:
     F = np.asarray(mesh.faces, np.int64)
     K = as_K(K)
     T = np.asarray(T_cam_table, np.float64)
-    R, t = T[:3, :3], T[:3, 3]
+    R = T[:3, :3]
     u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
     d_cam = np.stack([(u - K[0, 2] - K[0, 1] * (v - K[1, 2]) / K[1, 1]) / K[0, 0], (v - K[1, 2]) / K[1, 1],
                       np.ones_like(u)], -1)
-    rays = np.concatenate([np.broadcast_to(-R.T @ t, d_cam.shape), d_cam @ R], -1).astype(np.float32)
+    rays = np.concatenate([np.broadcast_to(camera_centre_table(T), d_cam.shape), d_cam @ R], -1).astype(np.float32)
     hit_info = raycasting_scene(V, F).cast_rays(o3d.core.Tensor(rays))  # type: ignore[call-overload]
     hit = np.isfinite(hit_info["t_hit"].numpy())
     prim = hit_info["primitive_ids"].numpy()[hit].astype(np.int64)

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from calib.camera import camera_centre_table
+
 from .cameras_io import atomic_write_text
 
 __all__ = ["BatchResult", "write_reports", "overview_html", "load_model", "thumbnail_camera", "render_thumbnail",
@@ -203,7 +205,7 @@ def render_thumbnail(out_dir: Path, size: int = THUMB_PX) -> np.ndarray:
         # the same rays as render_albedo's: the hit face's normal against the ray gives a Lambert shade
         u, v = np.meshgrid(np.arange(size, dtype=np.float64), np.arange(size, dtype=np.float64))
         d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1) @ T[:3, :3]
-        rays = np.concatenate([np.broadcast_to(-T[:3, :3].T @ T[:3, 3], d.shape), d], -1).astype(np.float32)
+        rays = np.concatenate([np.broadcast_to(camera_centre_table(T), d.shape), d], -1).astype(np.float32)
         ans = raycasting_scene(V, F).cast_rays(o3d.core.Tensor(rays))  # type: ignore[call-overload]
         n = ans["primitive_normals"].numpy()[hit].astype(np.float64)
         d = d[hit] / np.linalg.norm(d[hit], axis=1, keepdims=True)
