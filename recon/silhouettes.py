@@ -117,7 +117,8 @@ from .silhouette_doubt import (
 )
 from .silhouette_plates import PLATE_BORDER_MM, Plates, ground_match, median_frames, rectify_to_table
 
-__all__ = ["SilhouetteResult", "estimate_silhouettes", "cylinder_region", "rectify_to_table", "worker_threads"]
+__all__ = ["SilhouetteResult", "estimate_silhouettes", "paper_pixels", "cylinder_region", "rectify_to_table",
+           "worker_threads"]
 
 _MARGIN_MM = 5.0  # the object may overhang the target's outermost ink by this much
 _MIN_TAU = 6.0  # colour distance (0..255 units) below which a pixel agrees with a plate, at least
@@ -564,6 +565,57 @@ def _noise_tau(samples: np.ndarray) -> float:
     return max(_MIN_TAU, 1.5 * float(np.median(np.percentile(far, 95, axis=1))))
 
 
+def _plates(imgs: np.ndarray, K: np.ndarray, T: np.ndarray, radius: float, regions: list[np.ndarray]):
+    """The room and table plates of a sequence, or None where the working volume is out of view.
+
+    ``regions``: each view's image of the working volume (:func:`cylinder_region`). Returns ``(box, crops,
+    tau, plates, union)``: the box (two slices) round the union of the regions, the frames cropped to it,
+    the noise threshold (:func:`_noise_tau`), the :class:`~recon.silhouette_plates.Plates` and the union.
+    """
+    V, H, W = imgs.shape[:3]
+    union = np.any(regions, axis=0)
+    if not union.any():
+        return None
+    rows, cols = np.flatnonzero(union.any(axis=1)), np.flatnonzero(union.any(axis=0))
+    y0, y1, x0, x1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+    crops = imgs[:, y0:y1, x0:x1]
+    outside = ~union
+    samples = imgs[:, outside][:, ::7]
+    tau = _noise_tau(samples) if outside.sum() >= 100 else _MIN_TAU
+    # the room's colours: outside the volume and off the table top around it (the paper is the table's)
+    room = outside & ~np.any([cylinder_region(K, t, (W, H), radius + PLATE_BORDER_MM, 0.0) for t in T], axis=0)
+    room_colours = colour_set(imgs[:, room][:, ::7]) if room.sum() >= 100 else np.ones((32, 32, 32), bool)
+    plates = Plates(crops, imgs, K, T, (y0, x0), radius, tau, union[y0:y1, x0:x1], room_colours)
+    return (slice(y0, y1), slice(x0, x1)), crops, tau, plates, union
+
+
+def paper_pixels(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, radius_mm: float,
+                 height_mm: float) -> np.ndarray:
+    """(V, H, W) bool: the pixels where the photo shows the paper as the other views saw it.
+
+    That is, where the table plate (the target's paper in the table frame, from
+    the frames that see each point of it) is trusted and explains the pixel's
+    colour closely: the paper lit, not an object in front of it nor a shadow on
+    it. The working volume (``radius_mm``, ``height_mm``) is the one
+    :func:`estimate_silhouettes` ran in. What a doubtful region of a silhouette
+    would give the object is weighed with it (``turntable.stages.volume``): the
+    paper is never the object's.
+    """
+    imgs, K, T = _check_inputs(images_rgb, K, T_cam_table)
+    V, H, W = imgs.shape[:3]
+    out = np.zeros((V, H, W), bool)
+    setup = _plates(imgs, K, T, float(radius_mm), [cylinder_region(K, t, (W, H), float(radius_mm),
+                                                                   float(height_mm)) for t in T])
+    if setup is None:
+        return out
+    box, crops, tau, plates, _ = setup
+    for i in range(V):
+        table = plates.table_in_frame(T[i], crops[i].shape[:2])
+        out[(i, *box)] = table.trust & (range_dist(crops[i], table.lo, table.hi) < tau) \
+            & (colour_dist(crops[i], table.mid) < 2.0 * tau)
+    return out
+
+
 def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray,
                          spec: TargetSpec | None = None, *, radius_mm: float | None = None,
                          height_mm: float | None = None,
@@ -613,22 +665,12 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
     radius = float(radius_mm) if radius_mm is not None else float(spec.extent_mm) + _MARGIN_MM  # type: ignore[union-attr]
     height = float(height_mm) if height_mm is not None else largest_visible_height_mm(K, T, W, H)
     regions = [cylinder_region(K, t, (W, H), radius, height) for t in T]
-    union = np.any(regions, axis=0)
+    setup = _plates(imgs, K, T, radius, regions)
     unknown = np.zeros((V, H, W), bool)
-    if not union.any():
+    if setup is None:
         return SilhouetteResult(unknown.copy(), unknown, np.zeros(V),
                                 ("rejected: the working volume is not in view",) * V)
-    rows, cols = np.flatnonzero(union.any(axis=1)), np.flatnonzero(union.any(axis=0))
-    y0, y1, x0, x1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
-    crops = imgs[:, y0:y1, x0:x1]
-    outside = ~union
-    samples = imgs[:, outside][:, ::7]
-    tau = _noise_tau(samples) if outside.sum() >= 100 else _MIN_TAU
-    # the room's colours: outside the volume and off the table top around it (the paper is the table's)
-    room = outside & ~np.any([cylinder_region(K, t, (W, H), radius + PLATE_BORDER_MM, 0.0) for t in T], axis=0)
-    room_colours = colour_set(imgs[:, room][:, ::7]) if room.sum() >= 100 else np.ones((32, 32, 32), bool)
-    plates = Plates(crops, imgs, K, T, (y0, x0), radius, tau, union[y0:y1, x0:x1], room_colours)
-    box = (slice(y0, y1), slice(x0, x1))
+    box, crops, tau, plates, union = setup
     bases = [cylinder_region(K, t, (W, H), radius, 0.0)[box] for t in T]
     regions_box = [r[box] for r in regions]
     region_px = np.array([r.sum() for r in regions], float)

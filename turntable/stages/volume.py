@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 __all__ = ["WorkingVolume", "initial_volume", "mask_touches", "doubt_off_the_outline", "MIN_TOUCH_VIEWS",
-           "SPLIT_MAX_GROWTH"]
+           "SPLIT_MAX_GROWTH", "SPLIT_MAX_PAPER", "given_paper_share"]
 
 _GROWTH = 1.25  # each step grows the radius by this factor ...
 _MIN_STEP_MM = 10.0  # ... and by at least this much
@@ -28,6 +28,7 @@ _BAND_PX = 2  # a mask pixel within this many pixels inside the cylinder's image
 _MIN_TOUCH_PX = 3  # ... and a view touches the outline when at least this many of its mask pixels do
 _SPLIT_MIN_VIEWS = 3  # the object's side of the split is voted on where at least this many views split a pixel
 SPLIT_MAX_GROWTH = 1.3  # the split's hull may be this many times the one without the pieces (a neck given back)
+SPLIT_MAX_PAPER = 0.25  # ... or more, where at most this share of what the split gives back is the paper
 MIN_TOUCH_VIEWS = 2  # the volume grows when this many views' silhouettes touch it (one may be noise)
 
 
@@ -191,6 +192,25 @@ def doubt_off_the_outline(masks: np.ndarray, unknown: np.ndarray, K: np.ndarray,
         drop &= ~held
     views = [i for i in range(V) if drop[i].any()]
     return unknown & ~drop, views
+
+
+def given_paper_share(given: np.ndarray, images_rgb, K: np.ndarray, T_cam_table: np.ndarray,
+                      vol: WorkingVolume) -> float:
+    """The share of the pixels ``given`` (V, H, W) bool that show the paper as the other views saw it
+    (:func:`recon.silhouettes.paper_pixels`, in the working volume ``vol``); 0 where none is given.
+
+    What a split of the doubt off the outline gives back to the object (the pixels
+    its pieces keep) should be the object's: its shaded side or neck, joined to a
+    wall of its grey. Where it is mostly the target's lit paper, the split followed
+    the target's ink instead of the object's outline.
+    """
+    from recon.silhouettes import paper_pixels
+
+    n = int(np.count_nonzero(given))
+    if n == 0:
+        return 0.0
+    paper = paper_pixels(np.stack(list(images_rgb)), K, T_cam_table, vol.radius_mm, vol.height_mm)
+    return float(np.count_nonzero(given & paper)) / n
 
 
 def _wall_side(img: np.ndarray, mask: np.ndarray, pieces: np.ndarray, band: np.ndarray) -> np.ndarray:
