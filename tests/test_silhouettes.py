@@ -9,6 +9,8 @@ most frames it looks static, see the report.)
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -315,6 +317,28 @@ def test_white_vase_on_a_light_wall_keeps_its_neck_and_lip(tmp_path):
     m, chamfer_pct, gt, _ = _white_vase_hull(tmp_path / "white_vase_light", "light")
     assert m.bounds[1][1] >= 0.95 * gt.bounds[1][1], m.bounds[1][1]  # the lip is there
     assert chamfer_pct <= 4.5, chamfer_pct
+
+
+def test_white_vase_on_a_light_wall_leaves_the_paper_round_its_foot(tmp_path):
+    """The vase on a light wall under another light (seed 2), a full turn of 36 frames. Its shadow's sweep
+    rings the paper round its foot with untrusted texels, so that paper is an island of the table plate
+    (``untrust_enclosed``), and nothing said it was not the vase: every mask took the disc inside the inner
+    ring (mask pixels off the object: 47 % of the object's area on average, 3.06 % of the diagonal end to
+    end at 640 x 480). The island's plate from the views on each point's own side vouches for it in those
+    views: measured 2 %."""
+    from turntable.cameras_io import read_cameras
+    from turntable.synth import SynthOptions, make_sequence
+
+    folder = tmp_path / "white_vase_light_s2"
+    make_sequence(folder, SynthOptions(object="vase", backdrop="light", seed=2, width=W, height=H, focal_px=F_PX,
+                                       albedo=(0.85, 0.84, 0.82)), overwrite=True)
+    seq = read_cameras(folder / "cameras_gt.json")
+    imgs = np.stack([cv2.imread(str(folder / f.image))[..., ::-1] for f in seq.frames])
+    gts = np.stack([cv2.imread(str(folder / "masks" / (Path(f.image).stem + ".png")), 0) > 127 for f in seq.frames])
+    T = np.stack([f.T_cam_table for f in seq.frames])
+    res = estimate_silhouettes(imgs, seq.intrinsics.K, T, SPEC)
+    off = np.mean([(m & ~g).sum() / g.sum() for m, g in zip(res.masks, gts, strict=True)])
+    assert off <= 0.1, off
 
 
 def test_white_vase_on_the_green_ground_leaves_the_paper_round_its_foot(tmp_path):
