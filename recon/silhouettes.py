@@ -522,9 +522,12 @@ def _frame_mask(img, region, base, plates: Plates, T, tau, verified: bool) -> _F
     # hidden from the far side by the belly, ringed by its shadow's sweep on a light wall: no plate vouched
     # for the paper inside the inner ring, and the mask took it whole, 2.3 % of the diagonal at 1280 x 960,
     # seed 2). A raised plain top turning with the table (a plinth) is one plate in every view, not an arc's.
+    # For the mask only: the doubt keeps judging the island untrusted (a shadow on it, not the lit paper, is
+    # then sure background in a colour the object does not show; trusted, the textured cup's shadow by its
+    # foot turned unknown, and the fusion lost the cup's cavity: fused/hull 0.27 -> 0.65).
     arc_island = island & plates.in_arc_in_frame(T, (h, w)) if island.any() else island
-    if arc_island.any():
-        table = dataclasses.replace(table, trust=table.trust | arc_island, strong=table.strong | arc_island)
+    table_arc = table if not arc_island.any() else \
+        dataclasses.replace(table, trust=table.trust | arc_island, strong=table.strong | arc_island)
     room_v = _without(plates.room_verified, island)
     room = room_v if verified else _without(plates.room, island)
     dist = _plate_distances(img, room, table)  # the same for plates.room and plates.room_verified
@@ -535,7 +538,7 @@ def _frame_mask(img, region, base, plates: Plates, T, tau, verified: bool) -> _F
     # the volume's image a static object (a plain body of revolution) is part of the plate. (A
     # cluttered room shows too many colours to tell; there the second pass below handles it.)
     plain = plates.room_colours.mean() < _PLAIN_ROOM
-    ev = _initial_labels(img, region, room, table, tau, plates.room_colours, dist,
+    ev = _initial_labels(img, region, room, table_arc, tau, plates.room_colours, dist,
                          room_v.strong if plain else None, ground)
     prob = _grabcut(img, ev.labels)
     scale = math.sqrt(h * w / _WORK_PX)
@@ -544,8 +547,8 @@ def _frame_mask(img, region, base, plates: Plates, T, tau, verified: bool) -> _F
     mask = _clean(mask, base, ev.explained)
     # For a frame in doubt, the room plate explains only with the room's own colours: it may be
     # the object itself where that covers the same pixels in most frames.
-    ev_v = ev if verified else _initial_labels(img, region, room_v, table, tau, plates.room_colours, dist,
-                                               ground=ground)
+    ev_v = ev if verified and table_arc is table else \
+        _initial_labels(img, region, room_v, table, tau, plates.room_colours, dist, ground=ground)
     ink = texture_match(img, table, tau)
     if ground is not None and (seen := major_colours(img, mask)) is not None:
         # confident too, as the ink: the printed ground's colour lit or in a shadow, where the mask does not
@@ -556,7 +559,7 @@ def _frame_mask(img, region, base, plates: Plates, T, tau, verified: bool) -> _F
                      doubtful_pixels(img, mask, region, ev_v, ink, True), _outline_support(img, mask, ev, tau),
                      # (on an island too, where its plate comes from the views on the point's own side and
                      # this is one of them: paper round a vase's foot, seen from in front of it; see above)
-                     table.trust & (dist[1] < tau) & (dist[5] < 2.0 * tau),
+                     table_arc.trust & (dist[1] < tau) & (dist[5] < 2.0 * tau),
                      # off the table plate's disc, or on it where the plate's colour (or a shadow of it) is not
                      # the pixel's (a head above the plane, seen against the table behind the turntable)
                      region & ~(room_v.trust | table.trust)

@@ -174,7 +174,9 @@ def _unseen_cavity(h: np.ndarray, D: np.ndarray, C: np.ndarray, down: np.ndarray
     under a free column that (1) reaches up to the hull's outside (the
     opening), (2) is at least ``min_opening_mm`` deep and (3) whose lowest
     voxel at least ``min_views`` cameras above it saw as free (they looked
-    down into it). A few voxels of noisy carving at a surface, or free space
+    down into it; the most over its lowest ~2 mm, which the opening's depth
+    covers: the lowest voxel alone lies within the surface's depth noise). A
+    few voxels of noisy carving at a surface, or free space
     seen only from below (the top of a head above every camera), start
     nothing. Going down each column from a seed, unseen
     voxels are cavity voxels as long as their horizontal distance to the
@@ -199,8 +201,15 @@ def _unseen_cavity(h: np.ndarray, D: np.ndarray, C: np.ndarray, down: np.ndarray
         opens[:, j, :] = free[:, j, :] & (opens[:, j + 1, :] | ~inside[:, j + 1, :])
     seed = np.zeros_like(unseen)
     seed[:, :-1, :] = unseen[:, :-1, :] & free[:, 1:, :]
+    # views from above that saw the bottom of the free column free: the most over its lowest ~2 mm. The very
+    # lowest voxel lies within the depth noise of the surface under it and is seen free by fewer views the finer
+    # the grid (the rendered cup: 46 % of its cavity's footprint passed at 0.81 mm voxels, and the cavity
+    # stayed full, fused/hull 0.27 -> 0.66; most of it at 1.14 mm); the opening is deeper than that anyway.
+    low = np.asarray(down).copy()
+    for s in range(1, max(1, int(round(2.0 / voxel_mm)))):
+        low[:, :-s, :] = np.maximum(low[:, :-s, :], down[:, s:, :])
     good = np.zeros_like(unseen)  # seeds under an observed opening
-    good[:, :-1, :] = opens[:, 1:, :] & (run[:, 1:, :] * voxel_mm >= min_opening_mm) & (down[:, 1:, :] >= min_views)
+    good[:, :-1, :] = opens[:, 1:, :] & (run[:, 1:, :] * voxel_mm >= min_opening_mm) & (low[:, 1:, :] >= min_views)
     good &= seed
     E = np.zeros_like(unseen)
     if not good.any():
