@@ -764,5 +764,6 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
         u = unknown[(i, *box)]  # joined through smooth shading (doubt_enclosed)
         u |= doubt_unlike(outs[i].mask, u, doubtful[i], outs[i].unlike)
         u |= doubt_enclosed(crops[i], outs[i].mask | u, doubtful[i], tau)
-    ground = None if plates.ground is None else tuple(float(c) for c in plates.ground)
+    g = plates.ground
+    ground = None if g is None else (float(g[0]), float(g[1]), float(g[2]))
     return SilhouetteResult(masks=masks, unknown=unknown, quality=quality, status=status, ground=ground)
