@@ -501,6 +501,12 @@ class _FrameOut:
     unlike: np.ndarray  # (h, w) bool: not the background's colour (see doubt_unlike)
 
 
+def _lit_paper(trust: np.ndarray, d_range: np.ndarray, d_mid: np.ndarray, tau: float) -> np.ndarray:
+    """Where the trusted table plate explains a pixel as the lit paper: within ``tau`` of its 3 x 3 range and
+    ``2 tau`` of its own colour (``d_range``, ``d_mid``: the pixel's distances to them)."""
+    return trust & (d_range < tau) & (d_mid < 2.0 * tau)
+
+
 def _without(plate: Plate, pixels: np.ndarray) -> Plate:
     """``plate`` not trusted at ``pixels``."""
     if not pixels.any():
@@ -559,7 +565,7 @@ def _frame_mask(img, region, base, plates: Plates, T, tau, verified: bool) -> _F
                      doubtful_pixels(img, mask, region, ev_v, ink, True), _outline_support(img, mask, ev, tau),
                      # (on an island too, where its plate comes from the views on the point's own side and
                      # this is one of them: paper round a vase's foot, seen from in front of it; see above)
-                     table_arc.trust & (dist[1] < tau) & (dist[5] < 2.0 * tau),
+                     _lit_paper(table_arc.trust, dist[1], dist[5], tau),
                      # off the table plate's disc, or on it where the plate's colour (or a shadow of it) is not
                      # the pixel's (a head above the plane, seen against the table behind the turntable)
                      region & ~(room_v.trust | table.trust)
@@ -621,8 +627,8 @@ def paper_pixels(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray,
     box, crops, tau, plates, _ = setup
     for i in range(V):
         table = plates.table_in_frame(T[i], crops[i].shape[:2])
-        out[(i, *box)] = table.trust & (range_dist(crops[i], table.lo, table.hi) < tau) \
-            & (colour_dist(crops[i], table.mid) < 2.0 * tau)
+        out[(i, *box)] = _lit_paper(table.trust, range_dist(crops[i], table.lo, table.hi),
+                                    colour_dist(crops[i], table.mid), tau)
     return out
 
 
