@@ -536,6 +536,59 @@ def test_static_votes_keep_a_head_the_masks_hold_and_not_a_poster():
     assert not static_votes(across, masks)[0, 0]
 
 
+def test_views_that_show_the_same_colour_get_the_same_verdict():
+    """36 views of a static white vase, one row of pixels: its body (in every mask); its lit foot in front of
+    the paper, the same colour in every view and in the mask of 11 of them; the paper beside the foot, in
+    the mask of 5 (a shadow taken in); its shaded neck, in no mask; a pixel a textured part turns
+    past (the static colour in 20 views only, in the mask of 10 of them); a foot pixel one view sees in
+    another colour. The foot is held in every view that shows its colour; the paper (5 < 7.2 views), the
+    neck and the passing pixel (20 < 27 views alike) are not. A turning
+    object (its body's pixels change colour from view to view) gets nothing held."""
+    from recon.silhouettes import held_alike
+
+    V = 36
+    alike = np.ones((V, 1, 6), bool)
+    masks = np.zeros_like(alike)
+    body, foot, paper, neck, passing, crossed = range(6)
+    masks[:, 0, body] = True
+    masks[:11, 0, foot] = True
+    masks[:5, 0, paper] = True
+    alike[20:, 0, passing] = False
+    masks[:10, 0, passing] = True
+    masks[:11, 0, crossed] = True
+    alike[30, 0, crossed] = False
+    got = held_alike(alike, masks)
+    assert got[:, 0, foot].all()
+    assert not got[:, 0, paper].any() and not got[:, 0, neck].any() and not got[:, 0, passing].any()
+    assert got[:, 0, crossed].sum() == 35 and not got[30, 0, crossed]
+    masks[:8, 0, paper] = True  # 8 of 36: a fifth or more, held everywhere
+    assert held_alike(alike, masks)[:, 0, paper].all()
+    alike[::2, 0, body] = False  # a turning object
+    assert not held_alike(alike, masks).any()
+
+
+def test_white_vase_on_a_light_wall_is_not_carved_by_the_views_that_see_it_like_the_paper(tmp_path):
+    """The white vase on a light wall under another light (seed 4), a full turn. A body of revolution: every
+    view shows the same picture, yet where its lit foot matched the paper some views' masks held it and the
+    others carved it (missed: 23.5 % of the vase's pixels on average, 17 % in the best view and 32 % in the
+    worst). What the masks of the views showing the same colour hold is held in all of them (``held_alike``):
+    measured 17-19.7 % (the rest, the shaded neck against the wall's grey, is missed by all views alike)."""
+    from turntable.cameras_io import read_cameras
+    from turntable.synth import SynthOptions, make_sequence
+
+    folder = tmp_path / "white_vase_light_s4"
+    make_sequence(folder, SynthOptions(object="vase", backdrop="light", seed=4, width=W, height=H, focal_px=F_PX,
+                                       albedo=(0.85, 0.84, 0.82)), overwrite=True)
+    seq = read_cameras(folder / "cameras_gt.json")
+    imgs = np.stack([cv2.imread(str(folder / f.image))[..., ::-1] for f in seq.frames])
+    gts = np.stack([cv2.imread(str(folder / "masks" / (Path(f.image).stem + ".png")), 0) > 127 for f in seq.frames])
+    T = np.stack([f.T_cam_table for f in seq.frames])
+    res = estimate_silhouettes(imgs, seq.intrinsics.K, T, SPEC)
+    missed = np.array([(g & ~h).sum() / g.sum() for h, g in zip(res.masks | res.unknown, gts, strict=True)])
+    assert missed.max() <= 0.22, missed.max()
+    assert missed.max() - missed.min() <= 0.05, (missed.min(), missed.max())
+
+
 def test_reach_crosses_narrow_gaps_in_chains_and_stops_at_wide_ones():
     """A head above a shaded neck: its lower half 3 px above the body, its upper half 2 px above that
     (a terminator band of the wall's grey between them): both reached with a 4 px gap, in chain; a
