@@ -319,6 +319,22 @@ def test_white_vase_on_a_light_wall_keeps_its_neck_and_lip(tmp_path):
     assert chamfer_pct <= 4.5, chamfer_pct
 
 
+def _white_vase_on_a_light_wall(tmp_path, seed: int):
+    """The white vase on a light wall under the lights of ``seed``, a full turn of 36 frames: its automatic
+    silhouettes and the true masks."""
+    from turntable.cameras_io import read_cameras
+    from turntable.synth import SynthOptions, make_sequence
+
+    folder = tmp_path / f"white_vase_light_s{seed}"
+    make_sequence(folder, SynthOptions(object="vase", backdrop="light", seed=seed, width=W, height=H, focal_px=F_PX,
+                                       albedo=(0.85, 0.84, 0.82)), overwrite=True)
+    seq = read_cameras(folder / "cameras_gt.json")
+    imgs = np.stack([cv2.imread(str(folder / f.image))[..., ::-1] for f in seq.frames])
+    gts = np.stack([cv2.imread(str(folder / "masks" / (Path(f.image).stem + ".png")), 0) > 127 for f in seq.frames])
+    T = np.stack([f.T_cam_table for f in seq.frames])
+    return estimate_silhouettes(imgs, seq.intrinsics.K, T, SPEC), gts
+
+
 def test_white_vase_on_a_light_wall_leaves_the_paper_round_its_foot(tmp_path):
     """The vase on a light wall under another light (seed 2), a full turn of 36 frames. Its shadow's sweep
     rings the paper round its foot with untrusted texels, so that paper is an island of the table plate
@@ -326,17 +342,7 @@ def test_white_vase_on_a_light_wall_leaves_the_paper_round_its_foot(tmp_path):
     ring (mask pixels off the object: 47 % of the object's area on average, 3.06 % of the diagonal end to
     end at 640 x 480). The island's plate from the views on each point's own side vouches for it in those
     views: measured 2 %."""
-    from turntable.cameras_io import read_cameras
-    from turntable.synth import SynthOptions, make_sequence
-
-    folder = tmp_path / "white_vase_light_s2"
-    make_sequence(folder, SynthOptions(object="vase", backdrop="light", seed=2, width=W, height=H, focal_px=F_PX,
-                                       albedo=(0.85, 0.84, 0.82)), overwrite=True)
-    seq = read_cameras(folder / "cameras_gt.json")
-    imgs = np.stack([cv2.imread(str(folder / f.image))[..., ::-1] for f in seq.frames])
-    gts = np.stack([cv2.imread(str(folder / "masks" / (Path(f.image).stem + ".png")), 0) > 127 for f in seq.frames])
-    T = np.stack([f.T_cam_table for f in seq.frames])
-    res = estimate_silhouettes(imgs, seq.intrinsics.K, T, SPEC)
+    res, gts = _white_vase_on_a_light_wall(tmp_path, seed=2)
     off = np.mean([(m & ~g).sum() / g.sum() for m, g in zip(res.masks, gts, strict=True)])
     assert off <= 0.1, off
 
@@ -578,17 +584,7 @@ def test_white_vase_on_a_light_wall_is_not_carved_by_the_views_that_see_it_like_
     others carved it (missed: 23.5 % of the vase's pixels on average, 17 % in the best view and 32 % in the
     worst). What the views showing the same colour hold is held in all of them (``held_alike``): measured
     17-19.7 % (the rest, the shaded neck against the wall's grey, is missed by all views alike at this size)."""
-    from turntable.cameras_io import read_cameras
-    from turntable.synth import SynthOptions, make_sequence
-
-    folder = tmp_path / "white_vase_light_s4"
-    make_sequence(folder, SynthOptions(object="vase", backdrop="light", seed=4, width=W, height=H, focal_px=F_PX,
-                                       albedo=(0.85, 0.84, 0.82)), overwrite=True)
-    seq = read_cameras(folder / "cameras_gt.json")
-    imgs = np.stack([cv2.imread(str(folder / f.image))[..., ::-1] for f in seq.frames])
-    gts = np.stack([cv2.imread(str(folder / "masks" / (Path(f.image).stem + ".png")), 0) > 127 for f in seq.frames])
-    T = np.stack([f.T_cam_table for f in seq.frames])
-    res = estimate_silhouettes(imgs, seq.intrinsics.K, T, SPEC)
+    res, gts = _white_vase_on_a_light_wall(tmp_path, seed=4)
     missed = np.array([(g & ~h).sum() / g.sum() for h, g in zip(res.masks | res.unknown, gts, strict=True)])
     assert missed.max() <= 0.22, missed.max()
     assert missed.max() - missed.min() <= 0.05, (missed.min(), missed.max())
