@@ -304,7 +304,9 @@ class Plates:
     def __init__(self, crops, images, K, T, box, radius_mm, tau, inside, room_colours):
         room = median_frames(crops)
         lo, hi = plate_envelope(room)
-        agree = np.mean([range_dist(c, lo, hi) < tau for c in crops], axis=0)
+        # (V, h, w) bool: where each frame shows the room plate's colour (within its 3 x 3 range and tau)
+        self.room_alike = np.stack([range_dist(c, lo, hi) < tau for c in crops])
+        agree = self.room_alike.mean(axis=0)
         # Inside the cylinder's image a static plate pixel may be a static object (a uniformly
         # coloured body of revolution looks the same in every frame): trust it as background only
         # where its colour is one the surroundings show outside the cylinder, and, where the plate

@@ -288,7 +288,7 @@ def held_alike(alike: np.ndarray, masks: np.ndarray, doubt: np.ndarray | None = 
     if (steady & core).sum() < ALIKE_STATIC * max(int(core.sum()), 1):
         return np.zeros_like(alike)
     votes = masks if doubt is None else masks | doubt
-    keep = steady & ((alike & votes).sum(axis=0) >= ACROSS_SHARE * n) & (n > 0)
+    keep = steady & ((alike & votes).sum(axis=0) >= ACROSS_SHARE * n)
     return alike & keep[None]
 
 
@@ -806,12 +806,10 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
         u |= doubt_unlike(outs[i].mask, u, doubtful[i], outs[i].unlike)
         u |= doubt_enclosed(crops[i], outs[i].mask | u, doubtful[i], tau)
     if used:  # equal evidence, equal verdict: what the views showing the same colour hold (held_alike)
-        room = plates.room
-        alike = np.stack([range_dist(crops[i], room.lo, room.hi) < tau for i in used])
         sub = (np.asarray(used), *box)
         # the unknown off the table plate's disc counts as well: the paper round a foot is doubtful in many views
         off_paper = np.stack([~plates.plate_in_frame(T[i], crops[i].shape[:2]) for i in used])
-        hold = held_alike(alike, masks[sub], unknown[sub] & off_paper)
+        hold = held_alike(plates.room_alike[used], masks[sub], unknown[sub] & off_paper)
         for k, i in enumerate(used):
             unknown[(i, *box)] |= hold[k] & regions_box[i] & ~masks[(i, *box)]
     g = plates.ground
