@@ -533,6 +533,7 @@ class _FrameOut:
     paper: np.ndarray  # (h, w) bool: the table plate matches closely (see doubt_joined)
     unvouched: np.ndarray  # (h, w) bool: no plate is trusted there, the room's only in the room's colours
     unlike: np.ndarray  # (h, w) bool: not the background's colour (see doubt_unlike)
+    on_plate: np.ndarray  # (h, w) bool: the ray meets the plane on the table plate's disc
 
 
 def _lit_paper(trust: np.ndarray, d_range: np.ndarray, d_mid: np.ndarray, tau: float) -> np.ndarray:
@@ -605,7 +606,7 @@ def _frame_mask(img, region, base, plates: Plates, T, tau, verified: bool) -> _F
                      # the pixel's (a head above the plane, seen against the table behind the turntable)
                      region & ~(room_v.trust | table.trust)
                      & ~(on_plate & ((dist[1] < tau) | (dist[3] < tau))),
-                     (ev_v.trusted & ~ev_v.tight) | (~ev_v.trusted & (dist[4] > 2.0 * tau)))
+                     (ev_v.trusted & ~ev_v.tight) | (~ev_v.trusted & (dist[4] > 2.0 * tau)), on_plate)
 
 
 def _noise_tau(samples: np.ndarray) -> float:
@@ -808,7 +809,7 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
     if used:  # equal evidence, equal verdict: what the views showing the same colour hold (held_alike)
         sub = (np.asarray(used), *box)
         # the unknown off the table plate's disc counts as well: the paper round a foot is doubtful in many views
-        off_paper = np.stack([~plates.plate_in_frame(T[i], crops[i].shape[:2]) for i in used])
+        off_paper = ~np.stack([outs[i].on_plate for i in used])
         hold = held_alike(plates.room_alike[used], masks[sub], unknown[sub] & off_paper)
         for k, i in enumerate(used):
             unknown[(i, *box)] |= hold[k] & regions_box[i] & ~masks[(i, *box)]
