@@ -28,7 +28,8 @@ from scipy.ndimage import binary_dilation
 
 __all__ = ["Plate", "Evidence", "doubtful_pixels", "texture_match", "colour_dist", "colour_gradient", "colour_range",
            "plate_envelope", "range_dist", "shadow_dist", "colour_set", "in_set", "major_colours", "MAJOR_SHARE",
-           "doubt_joined", "doubt_across", "doubt_unlike", "doubt_enclosed", "reach"]
+           "doubt_joined", "doubt_across", "doubt_unlike", "doubt_enclosed", "doubt_pinholes", "reach",
+           "PINHOLE_SHARE"]
 
 
 @dataclass(frozen=True)
@@ -300,6 +301,32 @@ def doubt_enclosed(img: np.ndarray, held: np.ndarray, doubtful: np.ndarray, tau:
     n_smooth = np.bincount(lab[rim & (colour_range(img) < 2.0 * tau)], minlength=n)
     fill &= n_smooth >= smooth_share * np.maximum(n_rim, 1)
     return fill[lab]
+
+
+PINHOLE_SHARE = 0.01  # doubt_pinholes: a hole of at most this share of what the frame holds (16 px at least)
+
+
+def doubt_pinholes(held: np.ndarray, doubtful: np.ndarray | None = None, share: float = PINHOLE_SHARE) -> np.ndarray:
+    """(H, W) bool: the pinholes of ``held`` (a frame's mask and unknown pixels).
+
+    A pinhole is a 4-connected hole of ``held`` that does not touch the image's
+    border, of at most ``max(16, share * held pixels)`` pixels, and no pixel of
+    it confident background (all ``doubtful``, where given). Whether it is a
+    view through the object or a few pixels of its surface that look like the
+    paper behind it, the frame alone cannot tell: :func:`recon.silhouettes.carved_alone`
+    asks the other views.
+    """
+    hole = ~np.asarray(held, bool)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(hole.astype(np.uint8), connectivity=4)
+    if n <= 1:
+        return np.zeros_like(hole)
+    fill = np.ones(n, bool)
+    fill[0] = False  # the held pixels
+    fill[np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]])] = False  # open to the image's border
+    fill &= stats[:, cv2.CC_STAT_AREA] <= max(16.0, share * float(np.count_nonzero(~hole)))
+    if doubtful is not None:
+        fill[lab[hole & ~np.asarray(doubtful, bool)]] = False  # some pixel of it is confident background
+    return fill[lab] & hole
 
 
 def reach(cand: np.ndarray, base: np.ndarray, gap_px: int, rounds: int = 4) -> np.ndarray:
