@@ -153,11 +153,15 @@ def doubt_off_the_outline(masks: np.ndarray, unknown: np.ndarray, K: np.ndarray,
     pixel give it to the object. ``whole=True`` (or no images) drops every
     such piece whole: the fallback where the split still leaves the hull at
     the outline (no edge between the object and the wall), at the price of
-    the object's parts inside the piece.
+    the object's parts inside the piece. A dropped pixel that would leave a
+    pinhole in what the view holds (:func:`recon.silhouette_doubt.doubt_pinholes`)
+    through which the view alone would carve what every other view holds
+    (:func:`recon.silhouettes.carved_alone`) stays.
 
     Returns ``(unknown, views)``: the pruned unknown pixels and the views that lost any.
     """
-    from recon.silhouettes import cylinder_region
+    from recon.silhouette_doubt import doubt_pinholes
+    from recon.silhouettes import carved_alone, cylinder_region
 
     masks, unknown = np.asarray(masks, bool), np.asarray(unknown, bool)
     V, H, W = masks.shape
@@ -190,6 +194,10 @@ def doubt_off_the_outline(masks: np.ndarray, unknown: np.ndarray, K: np.ndarray,
         # a faint stretch of its outline first would carve it away alone
         held = (in_piece >= _SPLIT_MIN_VIEWS) & (2 * kept >= in_piece)
         drop &= ~held
+    if drop.any():  # a dropped pixel that would leave a pinhole through which the view alone carves stays
+        holds = masks | (unknown & ~drop)
+        pins = np.stack([doubt_pinholes(h) & d for h, d in zip(holds, drop, strict=True)])
+        drop &= ~carved_alone(pins, holds, K, T_cam_table, vol.radius_mm, vol.height_mm)
     views = [i for i in range(V) if drop[i].any()]
     return unknown & ~drop, views
 
