@@ -463,6 +463,34 @@ def test_doubt_off_the_outline_splits_the_object_from_the_wall_along_its_edge(sc
     assert not whole[1].any()
 
 
+def test_the_split_keeps_the_shaded_neck_of_a_white_vase_on_a_light_wall(tmp_path):
+    """A white vase on a light wall (seed 2, 640 x 480, 12 frames): its shaded neck has the wall's grey and the
+    doubt runs from it up to the volume's outline in every view. The split along the photo's edges must give
+    the neck back: the true silhouette missed by mask and unknown after it, 0.7 % on average and 4.1 % at most
+    (measured); with the gradient smoothed at 1 px the wall's flood leaked into the neck at the corner where it
+    meets the rim (7.7 % on average)."""
+    import cv2
+
+    from calib.target import TargetSpec
+    from recon.silhouettes import estimate_silhouettes
+    from turntable.stages.volume import doubt_off_the_outline, initial_volume
+
+    folder = tmp_path / "vase_light_s2"
+    make_sequence(folder, SynthOptions(object="vase", backdrop="light", seed=2, width=640, height=480,
+                                       focal_px=750.0, frames=12, step_deg=30.0, albedo=(0.85, 0.84, 0.82)))
+    seq = read_cameras(folder / "cameras_gt.json")
+    imgs = np.stack([cv2.imread(str(folder / f.image))[..., ::-1] for f in seq.frames])
+    truth = np.stack([cv2.imread(str(folder / "masks" / (Path(f.image).stem + ".png")), 0) > 127 for f in seq.frames])
+    K, Ts = seq.intrinsics.K, np.stack([f.T_cam_table for f in seq.frames])
+    spec = TargetSpec(80.0, 50.0, 3.0)
+    res = estimate_silhouettes(imgs, K, Ts, spec)
+    vol = initial_volume(K, Ts, (640, 480), spec.extent_mm)
+    got, views = doubt_off_the_outline(res.masks, res.unknown, K, Ts, vol, list(imgs))
+    assert views == list(range(12))  # the doubt ran to the outline in every view
+    missed = np.array([(t & ~h).sum() / t.sum() for h, t in zip(res.masks | got, truth, strict=True)])
+    assert missed.mean() <= 0.02 and missed.max() <= 0.06, (missed.mean(), missed.max())
+
+
 def test_negative_max_rejections_fails_before_any_work(tmp_path, scene, capsys):
     out = tmp_path / "scan"
     code = main(["reconstruct", str(scene / "images"), "--r-outer", "80", "--r-inner", "50", "--out", str(out),
