@@ -274,6 +274,7 @@ def held_votes(across: np.ndarray, masks: np.ndarray) -> np.ndarray:
 
 ALONE_SAMPLES = 2048  # carved_alone: samples along each ray (at most), a pixel's footprint at the axis apart
 ALONE_MIN_SAMPLES = 3  # ... a ray carves alone where this many of them lie in what every other view holds
+_ALONE_CHUNK = 1 << 20  # ... samples per pass (24 MiB of points)
 
 
 def carved_alone(cands: np.ndarray, held: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, radius_mm: float,
@@ -312,21 +313,24 @@ def carved_alone(cands: np.ndarray, held: np.ndarray, K: np.ndarray, T_cam_table
         dist = float(np.linalg.norm(centre))
         step = dist / float(K[0, 0])  # a pixel's footprint at the axis
         depth = np.arange(max(dist - span, 1.0), dist + span, step)[:ALONE_SAMPLES]
-        pts = centre + rays[:, None, :] * depth[None, :, None]  # (N, S, 3) table mm
-        inside = (np.hypot(pts[..., 0], pts[..., 2]) <= radius_mm) & (pts[..., 1] >= 0.0) & (pts[..., 1] <= height_mm)
-        n_px, n_s = inside.shape
-        sel = np.nonzero(inside.ravel())[0]
-        all_hold = np.ones(len(sel), bool)
-        flat = pts.reshape(-1, 3)[sel]
-        for j in range(V):
-            if j == i or not len(sel):
-                continue
-            uv = np.rint(project_points(K, T_cam_table[j], flat)).astype(np.int64)
-            seen = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
-            hold = np.ones(len(sel), bool)
-            hold[seen] = held[j][uv[seen, 1], uv[seen, 0]]
-            all_hold &= hold
-        count = np.bincount(sel[all_hold] // n_s, minlength=n_px)
+        count = np.zeros(len(xs), np.int64)
+        chunk = max(1, _ALONE_CHUNK // len(depth))  # rays per pass: bounded memory, however many candidates
+        for a in range(0, len(xs), chunk):
+            pts = centre + rays[a:a + chunk, None, :] * depth[None, :, None]  # (n, S, 3) table mm
+            inside = (np.hypot(pts[..., 0], pts[..., 2]) <= radius_mm) & (pts[..., 1] >= 0.0) \
+                & (pts[..., 1] <= height_mm)
+            sel = np.nonzero(inside.ravel())[0]
+            flat = pts.reshape(-1, 3)[sel]
+            all_hold = np.ones(len(sel), bool)
+            for j in range(V):
+                if j == i or not len(sel):
+                    continue
+                uv = np.rint(project_points(K, T_cam_table[j], flat)).astype(np.int64)
+                seen = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+                hold = np.ones(len(sel), bool)
+                hold[seen] = held[j][uv[seen, 1], uv[seen, 0]]
+                all_hold &= hold
+            count[a:a + chunk] = np.bincount(sel[all_hold] // len(depth), minlength=inside.shape[0])
         alone = count >= ALONE_MIN_SAMPLES
         n, lab = cv2.connectedComponents(cands[i].astype(np.uint8), connectivity=4)
         comp = lab[ys, xs]
