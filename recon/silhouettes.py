@@ -303,10 +303,13 @@ def carved_alone(cands: np.ndarray, held: np.ndarray, K: np.ndarray, T_cam_table
     out = np.zeros_like(cands)
     Kinv = np.linalg.inv(K)
     span = math.hypot(radius_mm, height_mm)
+    azimuth = camera_azimuths_deg(T_cam_table)
     for i in range(V):
         if not cands[i].any():
             continue
         ys, xs = np.nonzero(cands[i])
+        apart = np.abs((azimuth - azimuth[i] + 180.0) % 360.0 - 180.0)
+        order = [int(j) for j in np.argsort(-apart, kind="stable") if j != i]
         centre = camera_centre_table(T_cam_table[i])
         rays = np.column_stack([xs, ys, np.ones_like(xs)]).astype(float) @ Kinv.T @ T_cam_table[i][:3, :3]
         rays /= np.linalg.norm(rays, axis=1, keepdims=True)
@@ -321,16 +324,15 @@ def carved_alone(cands: np.ndarray, held: np.ndarray, K: np.ndarray, T_cam_table
                 & (pts[..., 1] <= height_mm)
             sel = np.nonzero(inside.ravel())[0]
             flat = pts.reshape(-1, 3)[sel]
-            all_hold = np.ones(len(sel), bool)
-            for j in range(V):
-                if j == i or not len(sel):
-                    continue
+            for j in order:  # the samples every view so far holds; the opposite views first (they carve most)
+                if not len(sel):
+                    break
                 uv = np.rint(project_points(K, T_cam_table[j], flat)).astype(np.int64)
                 seen = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
                 hold = np.ones(len(sel), bool)
                 hold[seen] = held[j][uv[seen, 1], uv[seen, 0]]
-                all_hold &= hold
-            count[a:a + chunk] = np.bincount(sel[all_hold] // len(depth), minlength=inside.shape[0])
+                sel, flat = sel[hold], flat[hold]
+            count[a:a + chunk] = np.bincount(sel // len(depth), minlength=inside.shape[0])
         alone = count >= ALONE_MIN_SAMPLES
         n, lab = cv2.connectedComponents(cands[i].astype(np.uint8), connectivity=4)
         comp = lab[ys, xs]
