@@ -289,13 +289,8 @@ def doubt_enclosed(img: np.ndarray, held: np.ndarray, doubtful: np.ndarray, tau:
     8-connected) and do not touch the box's border.
     """
     free = ~held
-    n, lab = cv2.connectedComponents(free.astype(np.uint8), connectivity=4)
-    if n <= 1:
-        return np.zeros_like(held)
-    fill = np.ones(n, bool)
-    fill[0] = False  # the held pixels
-    fill[np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]])] = False  # open to the box's border
-    fill[lab[free & ~doubtful]] = False  # some pixel of it is confident background
+    lab, fill, _ = _doubtful_holes(held, doubtful)
+    n = len(fill)
     rim = free & (cv2.dilate(held.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)
     n_rim = np.bincount(lab[rim], minlength=n)
     n_smooth = np.bincount(lab[rim & (colour_range(img) < 2.0 * tau)], minlength=n)
@@ -316,17 +311,24 @@ def doubt_pinholes(held: np.ndarray, doubtful: np.ndarray | None = None, share: 
     paper behind it, the frame alone cannot tell: :func:`recon.silhouettes.carved_alone`
     asks the other views.
     """
-    hole = ~np.asarray(held, bool)
-    n, lab, stats, _ = cv2.connectedComponentsWithStats(hole.astype(np.uint8), connectivity=4)
-    if n <= 1:
-        return np.zeros_like(hole)
+    held = np.asarray(held, bool)
+    lab, fill, area = _doubtful_holes(held, doubtful)
+    fill &= area <= max(16.0, share * float(np.count_nonzero(held)))
+    return fill[lab]
+
+
+def _doubtful_holes(held: np.ndarray, doubtful: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The 4-connected holes of ``held`` (h, w) bool: their labels (h, w) (0: the held pixels), which labels (n,)
+    are holes that do not touch the border and have no confident pixel (none not ``doubtful``; any hole where
+    ``doubtful`` is None), and their areas (n,) in pixels."""
+    free = ~held
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(free.astype(np.uint8), connectivity=4)
     fill = np.ones(n, bool)
     fill[0] = False  # the held pixels
-    fill[np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]])] = False  # open to the image's border
-    fill &= stats[:, cv2.CC_STAT_AREA] <= max(16.0, share * float(np.count_nonzero(~hole)))
+    fill[np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]])] = False  # open to the border
     if doubtful is not None:
-        fill[lab[hole & ~np.asarray(doubtful, bool)]] = False  # some pixel of it is confident background
-    return fill[lab] & hole
+        fill[lab[free & ~np.asarray(doubtful, bool)]] = False  # some pixel of it is confident background
+    return lab, fill, stats[:, cv2.CC_STAT_AREA]
 
 
 def reach(cand: np.ndarray, base: np.ndarray, gap_px: int, rounds: int = 4) -> np.ndarray:

@@ -284,8 +284,9 @@ def carved_alone(cands: np.ndarray, held: np.ndarray, K: np.ndarray, T_cam_table
 
     ``held`` (V, H, W) bool: what each view holds (mask and unknown). Each
     4-connected component of ``cands[i]`` is tested on its pixels' rays,
-    sampled (``ALONE_SAMPLES``) over the camera's depth range of the working
-    volume (the cylinder ``radius_mm``, ``height_mm``): a ray carves alone
+    sampled a pixel's footprint at the axis apart (``ALONE_SAMPLES`` at most)
+    over the camera's depth range of the working volume (the cylinder
+    ``radius_mm``, ``height_mm``): a ray carves alone
     where ``ALONE_MIN_SAMPLES`` of its samples in the volume project into what
     every other view holds (a view not seeing the sample holds it). A
     component is returned where half of its pixels or more carve alone.
