@@ -272,7 +272,8 @@ def ground_match(img: np.ndarray, ground: np.ndarray, tau: float, noise: float =
     return (total >= _GROUND_MIN_SUM) & (np.abs(chroma - ground).max(axis=-1) < tol)
 
 
-def reached_from_outside(room: np.ndarray, inside: np.ndarray, room_colours: np.ndarray, tau: float) -> np.ndarray:
+def reached_from_outside(room: np.ndarray, inside: np.ndarray, room_colours: np.ndarray, tau: float,
+                         off_table: np.ndarray | None = None) -> np.ndarray:
     """(h, w) bool: where the room plate may vouch for the room inside the volume's image, by where it lies.
 
     A plain stretch of the plate is the room's where it joins the room outside
@@ -285,7 +286,13 @@ def reached_from_outside(room: np.ndarray, inside: np.ndarray, room_colours: np.
     a light wall: its shaded side taken for background, 6.1 % of the diagonal).
     Textured stretches (the gradient's 9 x 9 mean above ``2 tau``: a wooden
     table's grain, clutter) keep the colour rule: their own edges would cut
-    them off, and no plain static object looks like them.
+    them off, and no plain static object looks like them. Except, ``off_table``
+    (where no view's ray meets the table plate's disc, so the room plate is
+    the only judge), a smooth ramp of shading (:func:`shading_ramp`) joined to
+    a colour the room never shows: a static head lit from above, whose shade
+    runs through the wall's grey between its lit cap and its dark chin, is no
+    stretch of the room (a white figure on a light wall: its head, vouched for,
+    was missing from every view and the model, 1.75 % of the diagonal).
     """
     grad = colour_gradient(room)
     edge = cv2.dilate((grad > 2.0 * tau).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
@@ -295,7 +302,48 @@ def reached_from_outside(room: np.ndarray, inside: np.ndarray, room_colours: np.
     hit[np.unique(lab[free & ~inside])] = True
     hit[0] = False
     textured = cv2.blur(grad, (9, 9)) > 2.0 * tau
+    if off_table is not None:
+        # a smooth ramp that runs into a colour the room never shows is an object's shading
+        ramp = off_table & textured & shading_ramp(room, tau)
+        n, rl = cv2.connectedComponents(ramp.astype(np.uint8), connectivity=8)
+        foreign = cv2.dilate((inside & ~in_set(room, room_colours)).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        shading = np.zeros(n, bool)
+        shading[np.unique(rl[ramp & foreign])] = True
+        shading[0] = False
+        textured &= ~shading[rl]
     return hit[lab] | textured
+
+
+_RAMP_WIN = 9  # shading_ramp's window, pixels
+_RAMP_RESIDUAL = 0.5  # ... a plane fits the window's colours within this share of tau (RMS)
+_RAMP_RISE = 2.0  # ... and rises across it by at least this many tau
+
+
+def shading_ramp(img: np.ndarray, tau: float) -> np.ndarray:
+    """(h, w) bool: where a tilted plane in x, y fits ``img`` over a 9 x 9 window: within ``tau / 2`` RMS in each
+    channel, rising by ``2 tau`` or more across the window in one of them.
+
+    A lit curved surface shades smoothly (the ramp of a sphere's grey from its
+    lit cap to its shaded side); a texture (wood grain, clutter) or a step (an
+    outline, the horizon) leaves a residual the size of its contrast, and a
+    plain wall has no rise.
+    """
+    k = _RAMP_WIN
+    r = np.arange(k, dtype=np.float32) - (k - 1) / 2
+    kx = np.tile(r, (k, 1)) / (k * k)
+    sxx = float((r ** 2).mean())
+    worst = np.zeros(img.shape[:2], np.float32)
+    rise = np.zeros(img.shape[:2], np.float32)
+    for c in range(img.shape[2]):
+        ch = img[..., c].astype(np.float32)
+        mean = cv2.blur(ch, (k, k), borderType=cv2.BORDER_REFLECT)
+        sq = cv2.blur(ch * ch, (k, k), borderType=cv2.BORDER_REFLECT)
+        # filter2D correlates: the window's mean of x * I, x relative to its centre; / mean(x^2): the slope
+        gx = cv2.filter2D(ch, -1, kx, borderType=cv2.BORDER_REFLECT) / sxx
+        gy = cv2.filter2D(ch, -1, kx.T, borderType=cv2.BORDER_REFLECT) / sxx
+        worst = np.maximum(worst, sq - mean * mean - (gx * gx + gy * gy) * sxx)
+        rise = np.maximum(rise, np.hypot(gx, gy) * (k - 1))
+    return (worst < (_RAMP_RESIDUAL * tau) ** 2) & (rise >= _RAMP_RISE * tau)
 
 
 class Plates:
@@ -313,8 +361,6 @@ class Plates:
         # is plain, where it joins them without crossing an edge (reached_from_outside).
         self.room = Plate(room, lo, hi, agree >= TRUST, agree >= STRONG)
         self.room_colours = room_colours
-        verified = ~inside | (in_set(room, room_colours) & reached_from_outside(room, inside, room_colours, tau))
-        self.room_verified = Plate(room, lo, hi, self.room.trust & verified, self.room.strong & verified)
         self.plane_radius = radius_mm + PLATE_BORDER_MM
         rect = np.stack([rectify_to_table(im, K, t, self.plane_radius, PLANE_PX_PER_MM)
                          for im, t in zip(images, T, strict=True)])
@@ -331,6 +377,11 @@ class Plates:
         self.table_disc = (raster_radius_px(self.table.shape[0])
                            <= self.plane_radius * PLANE_PX_PER_MM).astype(np.uint8)  # the plate's disc
         self.K, self.box = K, box
+        # the room plate is the only explanation where no view's ray meets the table plate's disc
+        off_table = ~np.any([self.plate_in_frame(t, room.shape[:2]) for t in T], axis=0)
+        verified = ~inside | (in_set(room, room_colours)
+                              & reached_from_outside(room, inside, room_colours, tau, off_table))
+        self.room_verified = Plate(room, lo, hi, self.room.trust & verified, self.room.strong & verified)
 
     def _to_box(self, T: np.ndarray) -> np.ndarray:
         """3x3 map from the table-plate raster to the pixels of frame ``T``'s box."""

@@ -622,6 +622,24 @@ def test_static_votes_keep_a_head_the_masks_hold_and_not_a_poster():
     assert not static_votes(across, masks)[0, 0]
 
 
+def test_wide_votes_count_the_views_that_reach_a_pixel_across_as_well_as_those_that_hold_it():
+    """36 views. A head pixel no view holds, across in 9 views (kept: a quarter); one across in 3 views and
+    held in 5 (kept: 8 of 36); a poster pixel across in 5 views while the object turns past (not kept)."""
+    from recon.silhouettes import wide_votes
+
+    V = 36
+    across = np.zeros((V, 1, 3), bool)
+    held = np.zeros_like(across)
+    across[::4, 0, 0] = True
+    across[:3, 0, 1] = True
+    held[10:15, 0, 1] = True
+    across[20:25, 0, 2] = True
+    assert wide_votes(across, held)[0].tolist() == [True, True, False]
+    across[::4, 0, 0] = False
+    across[::6, 0, 0] = True  # 6 of 36 views: under a fifth
+    assert not wide_votes(across, held)[0, 0]
+
+
 def test_views_that_show_the_same_colour_get_the_same_verdict():
     """36 views of a static white vase, one row of pixels: its body (in every mask); its lit foot in front of
     the paper, the same colour in every view and in the mask of 11 of them; the paper beside the foot, in
@@ -773,6 +791,42 @@ def test_room_plate_vouches_only_for_the_plain_room_it_reaches():
     assert reached[15:25, 105:150].all()  # the wall inside the volume's image
     assert not reached[r < 20].any()  # the object's plain interior (its outline's texture reaches a few px in)
     assert reached[grain][5:-5, 5:-5].all()  # the grain, by its texture
+    # judged off the table (the smooth stretches are no texture), it vouches for less, and only on the object
+    off = reached_from_outside(room, inside, colours, tau=6.0, off_table=np.ones_like(inside))
+    assert not (off & ~reached).any() and (r[reached & ~off] < 30).all()
+
+
+def test_room_plate_does_not_vouch_for_a_static_head_shaded_through_the_walls_grey():
+    """A static head on the axis (a sphere, lit from above) seen against a grey wall: its shade ramps
+    smoothly from light to dark through the wall's grey (150). The ramp is steep enough to count as
+    texture, but a plane fits it where grain or a step would not: off the table, it is no room's."""
+    from recon.silhouette_doubt import colour_set
+    from recon.silhouette_plates import reached_from_outside, shading_ramp
+
+    rng = np.random.default_rng(1)
+    room = np.full((120, 160, 3), 150.0)
+    yy, xx = np.mgrid[:120, :160]
+    r = np.hypot(yy - 60, xx - 50)
+    head = r < 24
+    room[head] = (150.0 - 100.0 * (yy[head] - 60) / 24.0)[:, None]  # 250 at its top, 50 at its bottom
+    grain = (slice(30, 90), slice(100, 140))
+    room[grain] = (120.0 + 40.0 * (np.sin(xx[grain] * 1.3) > 0))[..., None]
+    room = np.clip(room + rng.normal(0.0, 1.0, room.shape), 0, 255).astype(np.uint8)
+    inside = np.zeros((120, 160), bool)
+    inside[10:110, 15:150] = True
+    colours = colour_set(np.concatenate([room[~inside], room[grain].reshape(-1, 3)]))
+    wall_grey = head & (np.abs(yy - 60) < 3) & (r < 18)  # the head's pixels in the wall's grey, off its outline
+    old = reached_from_outside(room, inside, colours, tau=6.0)
+    assert old[wall_grey].all()  # by its texture alone, the head's grey band was the wall's
+    off_table = np.ones_like(inside)
+    new = reached_from_outside(room, inside, colours, tau=6.0, off_table=off_table)
+    assert not new[wall_grey].any()
+    assert new[grain][5:-5, 5:-5].all() and new[15:25, 100:145].all()  # the grain and the wall stay the room's
+    on_table = np.zeros_like(inside)
+    on_table[40:] = True  # on the table plate's disc the table plate judges: the rule is the old one there
+    assert (reached_from_outside(room, inside, colours, tau=6.0, off_table=~on_table)[40:] == old[40:]).all()
+    ramp = shading_ramp(room, 6.0)
+    assert ramp[head & (r < 18)].mean() > 0.9 and not ramp[grain][5:-5, 5:-5].any() and not ramp[15:25, 100:145].any()
 
 
 def test_table_plate_knows_the_arc_of_views_a_hidden_point_is_seen_from():
