@@ -161,7 +161,8 @@ def texture_match(img, plate: Plate, tau) -> np.ndarray:
     return plate.trust & near & (vp > (2.0 * tau) ** 2) & drawn & (ncc > 0.8)
 
 
-def doubtful_pixels(img, mask, region, ev: Evidence, ink: np.ndarray, plates_only: bool) -> np.ndarray:
+def doubtful_pixels(img, mask, region, ev: Evidence, ink: np.ndarray, plates_only: bool,
+                    static: np.ndarray | None = None) -> np.ndarray:
     """(h, w) bool: pixels of the region outside the mask that are not confidently background.
 
     Confident background is what the object cannot fake: a colour none of the
@@ -176,6 +177,10 @@ def doubtful_pixels(img, mask, region, ev: Evidence, ink: np.ndarray, plates_onl
     then the object's colours are also those of every pixel of the region
     that no plate explains). The object's colours are those filling at least
     0.2 % of its pixels: a few dark crevices do not make a dark room doubtful.
+    ``static``: where the room plate is trusted but does not vouch for the room
+    (a static object over the axis, see :class:`recon.silhouette_plates.Plates`):
+    no plate speaks for the background there either, and a static figure's dark
+    crease under its head (a colour its mask rarely shows) is no background.
     """
     # a frame in doubt may have missed most of the object: what no plate explains may be it too
     obj = mask | (region & ~ev.explained) if plates_only else mask
@@ -183,7 +188,7 @@ def doubtful_pixels(img, mask, region, ev: Evidence, ink: np.ndarray, plates_onl
     object_colours = major_colours(img, obj)
     if object_colours is None:
         object_colours = np.zeros((32,) * 3, bool)
-    known = ev.tight if plates_only else ev.tight | ~ev.trusted
+    known = ev.tight if plates_only else ev.tight | (~ev.trusted if static is None else ~ev.trusted & ~static)
     confident = ~in_set(img, object_colours) & known
     confident |= ink
     return region & ~mask & ~confident

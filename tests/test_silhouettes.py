@@ -521,6 +521,37 @@ def test_doubt_enclosed_closes_a_smooth_belly_and_keeps_views_through_the_object
     assert doubt_enclosed(img, held2, ~held2, tau)[belly].all()
 
 
+def test_a_static_objects_dark_crease_that_no_plate_vouches_for_is_doubtful():
+    """One row of a frame on a light wall (200): the mask holds the figure's light grey body (180); beside it
+    its chin's dark crease (60, a colour the mask does not show) where the room plate is trusted (the static
+    head is the plate there) but does not vouch for the room; then a dark spot of the wall (60) where no
+    plate is trusted at all (something passed in most frames). Both are unlike the object's colours; the
+    spot is confident background, as before, the crease is not: it is the static object itself."""
+    from recon.silhouette_doubt import Evidence, doubtful_pixels
+
+    w = 40
+    img = np.full((1, w, 3), 200, np.uint8)
+    img[0, :20] = 180  # the body, in the mask
+    img[0, 20:24] = 60  # the crease
+    img[0, 30:34] = 60  # the dark spot of the wall
+    mask = np.zeros((1, w), bool)
+    mask[0, :20] = True
+    region = np.ones((1, w), bool)
+    trusted = np.ones((1, w), bool)
+    trusted[0, 20:24] = trusted[0, 30:34] = False  # the verified plates say nothing at either
+    no = np.zeros((1, w), bool)
+    ev = Evidence(np.zeros((1, w), np.uint8), trusted, trusted, no, trusted, no, img, trusted)
+    static = np.zeros((1, w), bool)
+    static[0, 20:24] = True  # the unverified room plate is trusted at the crease: a static object
+    before = doubtful_pixels(img, mask, region, ev, no, False)
+    assert not before[0, 20:24].any() and not before[0, 30:34].any()
+    got = doubtful_pixels(img, mask, region, ev, no, False, static)
+    assert got[0, 20:24].all() and not got[0, 30:34].any()
+    assert not got[0, 24:30].any() and not got[0, 34:].any()  # the wall the plate vouches for: confident
+    strict = doubtful_pixels(img, mask, region, ev, no, True, static)  # a frame in doubt doubts both
+    assert strict[0, 20:24].all() and strict[0, 30:34].all()
+
+
 def test_pinholes_are_small_enclosed_doubtful_holes():
     """A frame holds a body (mask and unknown) with a pinhole of 5 x 5 doubtful pixels. Not pinholes: a hole
     with one confident pixel (the printed ink), a hole larger than the share of what the frame holds, the
