@@ -378,7 +378,10 @@ class Plates:
                            <= self.plane_radius * PLANE_PX_PER_MM).astype(np.uint8)  # the plate's disc
         self.K, self.box = K, box
         # the room plate is the only explanation where no view's ray meets the table plate's disc
-        off_table = ~np.any([self.plate_in_frame(t, room.shape[:2]) for t in T], axis=0)
+        on_table = np.zeros(room.shape[:2], bool)
+        for t in T:  # one view at a time: 72 views of a 12 MP work size would hold a GB at once
+            on_table |= self.plate_in_frame(t, room.shape[:2])
+        off_table = ~on_table
         verified = ~inside | (in_set(room, room_colours)
                               & reached_from_outside(room, inside, room_colours, tau, off_table))
         self.room_verified = Plate(room, lo, hi, self.room.trust & verified, self.room.strong & verified)
