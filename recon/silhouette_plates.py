@@ -296,7 +296,8 @@ def reached_from_outside(room: np.ndarray, inside: np.ndarray, room_colours: np.
     """
     grad = colour_gradient(room)
     edge = cv2.dilate((grad > 2.0 * tau).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    free = in_set(room, room_colours) & ~edge
+    roomlike = in_set(room, room_colours)
+    free = roomlike & ~edge
     n, lab = cv2.connectedComponents(free.astype(np.uint8), connectivity=4)
     hit = np.zeros(n, bool)
     hit[np.unique(lab[free & ~inside])] = True
@@ -306,7 +307,7 @@ def reached_from_outside(room: np.ndarray, inside: np.ndarray, room_colours: np.
         # a smooth ramp that runs into a colour the room never shows is an object's shading
         ramp = off_table & textured & shading_ramp(room, tau)
         n, rl = cv2.connectedComponents(ramp.astype(np.uint8), connectivity=8)
-        foreign = cv2.dilate((inside & ~in_set(room, room_colours)).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        foreign = cv2.dilate((inside & ~roomlike).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
         shading = np.zeros(n, bool)
         shading[np.unique(rl[ramp & foreign])] = True
         shading[0] = False
