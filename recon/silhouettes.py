@@ -688,7 +688,8 @@ def _frame_mask(img, region, base, plates: Plates, T, tau, verified: bool) -> _F
         # show it (the figure's cast shadow on the green paper was doubtful, not the paper's own colour
         # there, and the unknown took it: a mound round the feet, 1.06 -> 0.97 % on a light wall)
         ink = ink | (ground[1] & ~in_set(img, seen))
-    static = plates.room.trust & ~island & ~room_v.trust  # trusted, not vouched for: a static object?
+    # trusted, not vouched for (a static object?), in a colour the room shows nowhere
+    static = plates.room.trust & ~island & ~room_v.trust & ~in_set(img, plates.room_colours)
     return _FrameOut(mask, doubtful_pixels(img, mask, region, ev_v, ink, False, static),
                      doubtful_pixels(img, mask, region, ev_v, ink, True), _outline_support(img, mask, ev, tau),
                      # (on an island too, where its plate comes from the views on the point's own side and
