@@ -28,7 +28,7 @@ from scipy.ndimage import binary_dilation
 
 __all__ = ["Plate", "Evidence", "doubtful_pixels", "texture_match", "colour_dist", "colour_gradient", "colour_range",
            "plate_envelope", "range_dist", "shadow_dist", "colour_set", "in_set", "major_colours", "MAJOR_SHARE",
-           "doubt_joined", "doubt_across", "doubt_unlike", "doubt_enclosed", "doubt_pinholes", "reach",
+           "doubt_joined", "blend_behind", "doubt_across", "doubt_unlike", "doubt_enclosed", "doubt_pinholes", "reach",
            "PINHOLE_SHARE"]
 
 
@@ -194,7 +194,8 @@ def doubtful_pixels(img, mask, region, ev: Evidence, ink: np.ndarray, plates_onl
     return region & ~mask & ~confident
 
 
-def doubt_joined(img: np.ndarray, mask: np.ndarray, doubtful: np.ndarray, paper: np.ndarray, tau: float) -> np.ndarray:
+def doubt_joined(img: np.ndarray, mask: np.ndarray, doubtful: np.ndarray, paper: np.ndarray, tau: float,
+                 background: np.ndarray | None = None, usable: np.ndarray | None = None) -> np.ndarray:
     """(h, w) bool: the doubtful pixels joined to the mask without crossing an edge: a frame's unknown pixels.
 
     A white object's shaded side against a wall of its own grey is doubtful, and
@@ -203,7 +204,11 @@ def doubt_joined(img: np.ndarray, mask: np.ndarray, doubtful: np.ndarray, paper:
     object's part the mask missed joins it through smooth shading. So the
     doubtful pixels are grown from the mask through pixels without an edge (their
     3 x 3 colour range under ``2 tau``, 8-connected), then one pixel further (the
-    edge's own blended pixels). Not through ``paper``, the pixels the table plate
+    edge's own blended pixels; given the plates' colour, ``background`` and
+    ``usable`` as in :class:`Evidence`, only those more object than background,
+    :func:`blend_behind`, but any in a pinhole, :func:`doubt_pinholes`: the
+    shaded line under a static vase's lip has a verified room plate of its own
+    colour, and judged it cut a notch through the lip). Not through ``paper``, the pixels the table plate
     matches closely (the plane's own colour at that point, not a shadow of it):
     from an object part of the paper's colour resting on it there is no edge,
     and a grown region flooded the paper up to the printed rings. So a white
@@ -223,8 +228,48 @@ def doubt_joined(img: np.ndarray, mask: np.ndarray, doubtful: np.ndarray, paper:
     smooth = doubtful & ~paper & (colour_range(img) < 2.0 * tau)
     n, lab = cv2.connectedComponents(smooth.astype(np.uint8), connectivity=8)
     keep = np.unique(lab[(cv2.dilate(mask.astype(np.uint8), k3) > 0) & smooth])
-    grown = np.isin(lab, keep[keep > 0])
-    return (cv2.dilate((grown | mask).astype(np.uint8), k3) > 0) & doubtful
+    held = np.isin(lab, keep[keep > 0]) | mask
+    ring = (cv2.dilate(held.astype(np.uint8), k3) > 0) & ~held & doubtful
+    if background is not None and usable is not None:  # not in a pinhole: a crack in the object's shading
+        ring &= ~(blend_behind(img, held, ring, background, usable, tau) & ~doubt_pinholes(held))
+    return (held & doubtful) | ring
+
+
+def blend_behind(img: np.ndarray, held: np.ndarray, ring: np.ndarray, background: np.ndarray, usable: np.ndarray,
+                 tau: float) -> np.ndarray:
+    """(h, w) bool: the ``ring`` pixels (the layer just outside ``held``, or the outer layer of what a
+    frame holds) that are more background than object.
+
+    A blended outline pixel's colour is ``alpha F + (1 - alpha) B``, with ``B`` the
+    trusted plate's colour (``background``, where ``usable``; elsewhere the mean
+    colour of the pixels two or more outside, within 7 x 7) and ``F`` the
+    object's colour at the outline (the mean of the ``held`` pixels next to the
+    ring, within 7 x 7). Where the two differ by more than ``3 tau`` the pixel
+    goes to the side that covers most of it (``alpha < 1/2``: background, the
+    ground truth's convention); elsewhere it cannot be told and is not returned.
+    ``F`` is taken at the outline, not further in: a curved body's shading turns
+    towards its limb, and the colour of its lit middle made a shaded limb's own
+    pixels look like the background (a fifth of a shaded sphere's outline on a
+    dark wall; a tenth of it next to the ring). A limb whose shade turns to the
+    backdrop's within the outermost pixel still reads as the backdrop there.
+    """
+    f_img = img.astype(np.float32)
+
+    def near_mean(sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        wgt = cv2.boxFilter(sel.astype(np.float32), -1, (7, 7), normalize=False)
+        mean = cv2.boxFilter(f_img * sel[..., None], -1, (7, 7), normalize=False) / np.maximum(wgt, 1e-6)[..., None]
+        return mean, wgt > 0.5
+
+    # the object's colour at the outline: the held pixels next to the ring (further in, a curved body's
+    # shading turns: its lit middle made the shaded limb's own pixels look like the background)
+    F, has_F = near_mean(held & (cv2.dilate(ring.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0))
+    # where no plate is trusted, the colour just beyond the ring (the held pixels' outside, two pixels off)
+    B_out, has_B = near_mean(cv2.dilate((held | ring).astype(np.uint8), np.ones((3, 3), np.uint8)) == 0)
+    B = np.where(usable[..., None], background.astype(np.float32), B_out)
+    fb = F - B
+    ok = ring & has_F & (usable | has_B) & (np.abs(fb).max(-1) > 3.0 * tau)
+    alpha = ((f_img - B) * fb).sum(-1) / np.maximum((fb * fb).sum(-1), 1e-6)
+    return ok & (alpha < 0.5)
 
 
 def doubt_across(mask: np.ndarray, joined: np.ndarray, doubtful: np.ndarray, unvouched: np.ndarray,

@@ -178,10 +178,10 @@ def test_three_states_are_disjoint_and_ok_frames_have_a_thin_unknown(sequence):
     assert not (res.unknown & res.masks).any()
     for i, s in enumerate(res.status):
         assert s == "ok" or s.startswith(("conservative: ", "rejected: ")), s
-        if s == "ok":  # only the doubtful outline band, joined to the object
+        if s == "ok":  # only the doubtful outline band, joined to the object or across its blended pixels
             assert res.unknown[i].sum() < res.masks[i].sum(), (i, res.unknown[i].sum())
             n, lab = cv2.connectedComponents(res.unknown[i].astype(np.uint8), connectivity=8)
-            near = cv2.dilate(res.masks[i].astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+            near = cv2.dilate(res.masks[i].astype(np.uint8), np.ones((5, 5), np.uint8)) > 0  # doubt_across's gap
             assert set(range(1, n)) <= set(np.unique(lab[near])), i
     assert _touching_views(res.masks, T, SPEC.extent_mm + 5.0) == set()
 
@@ -438,6 +438,86 @@ def test_doubt_joined_keeps_a_shaded_side_and_stops_at_the_wall():
     assert not unknown[wall].any()
     assert unknown[42:, :].sum() == 0  # the paper two rows below the foot on
     assert not (unknown & mask).any()
+
+
+def _shaded_disc(h=80, w=100, r=25.0, background=60.0, limb=95.0, seed=0):
+    """A white ball on a plain backdrop with exact pixel coverage (16 x 16 sub-samples a pixel), shaded
+    as a sphere lit from the front left, down to ``limb`` on its dark side. Returns (img, coverage)."""
+    s = 16
+    yy, xx = np.mgrid[0:h * s, 0:w * s]
+    yy = (yy + 0.5) / s - 0.5
+    xx = (xx + 0.5) / s - 0.5
+    cy, cx = h / 2 - 0.3, w / 2 + 0.2
+    inside = (yy - cy) ** 2 + (xx - cx) ** 2 <= r * r
+    nx, ny = (xx - cx) / r, (yy - cy) / r
+    nz = np.sqrt(np.clip(1.0 - nx * nx - ny * ny, 0.0, 1.0))
+    shade = limb + (235.0 - limb) * np.clip(-0.6 * nx + 0.8 * nz, 0.0, 1.0)  # turns fast near the limb
+    img = np.where(inside, shade, background).reshape(h, s, w, s).mean(axis=(1, 3))
+    cover = inside.reshape(h, s, w, s).mean(axis=(1, 3))
+    rng = np.random.default_rng(seed)
+    return np.clip(img[..., None] + rng.normal(0, 1.0, (h, w, 3)), 0, 255).astype(np.uint8), cover
+
+
+def _outer_layer(held):
+    return held & (cv2.erode(held.astype(np.uint8), np.ones((3, 3), np.uint8)) == 0)
+
+
+@pytest.mark.parametrize("plate_known", [True, False])
+def test_blend_behind_gives_each_outline_pixel_to_the_side_that_covers_most(plate_known):
+    """Ground truth: a shaded ball's pixel coverage (the masks' convention: object where >= 1/2). Held
+    one pixel too wide all round, the outer layer (coverage < 1/2) goes; held exactly, it stays, down to
+    the dark limb, whose colour is far from the lit middle's (taken further in, that colour gave a fifth
+    of it to the backdrop). With the backdrop's plate or, where no plate is trusted, from the pixels
+    beyond."""
+    from recon.silhouette_doubt import blend_behind
+
+    img, cover = _shaded_disc()
+    truth = cover >= 0.5
+    bg = np.full(img.shape, 60, np.uint8)
+    usable = np.full(truth.shape, plate_known)
+    wide = cv2.dilate(truth.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    ring = _outer_layer(wide)
+    drop = blend_behind(img, wide & ~ring, ring, bg, usable, 6.0)
+    assert not (drop & ~ring).any()
+    assert drop[ring].mean() > 0.95, drop[ring].mean()
+    ring = _outer_layer(truth)
+    drop = blend_behind(img, truth & ~ring, ring, bg, usable, 6.0)
+    assert drop[ring].mean() < 0.1, drop[ring].mean()
+
+
+def test_blend_behind_leaves_what_it_cannot_tell():
+    """A ball of the backdrop's own grey (a white object's shade on a wall of that grey): no outline pixel
+    can be told from the backdrop, and none is given to it."""
+    from recon.silhouette_doubt import blend_behind
+
+    img, cover = _shaded_disc(background=150.0, limb=150.0)
+    img = np.clip(150 + np.random.default_rng(1).normal(0, 1.0, img.shape), 0, 255).astype(np.uint8)
+    truth = cover >= 0.5
+    wide = cv2.dilate(truth.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    ring = _outer_layer(wide)
+    for usable in (np.ones(truth.shape, bool), np.zeros(truth.shape, bool)):
+        assert not blend_behind(img, wide & ~ring, ring, np.full(img.shape, 150, np.uint8), usable, 6.0).any()
+
+
+def test_outline_trim_never_cuts_a_part_off():
+    """The outline's blended pixels go to the side that covers most of each, but not one whose loss would
+    cut a held part off the mask, nor that part's own (a doubtful part joined through a blended pixel
+    stays whole and joined); a pixel that cuts nothing goes."""
+    from recon.silhouettes import _keep_joined
+
+    mask = np.zeros((20, 30), bool)
+    mask[5:15, 2:10] = True
+    held = mask.copy()
+    held[9, 10:14] = True  # a one-pixel bridge ...
+    held[6:13, 14:20] = True  # ... to a doubtful part
+    held[15, 4] = True  # a doubtful pixel next to the mask
+    drop = np.zeros_like(held)
+    drop[9, 11] = True  # dropping the bridge would cut the part off
+    drop[12, 19] = True  # an outline pixel of that part: kept with it
+    drop[15, 4] = True  # cuts nothing
+    kept = _keep_joined(held, mask, drop)
+    assert not kept[9, 11] and not kept[12, 19] and kept[15, 4]
+    assert _keep_joined(held, mask, np.zeros_like(held)).sum() == 0
 
 
 def test_doubt_unlike_keeps_a_thin_arm_and_stops_at_the_wall():
