@@ -208,9 +208,9 @@ def doubt_joined(img: np.ndarray, mask: np.ndarray, doubtful: np.ndarray, paper:
     ``usable`` as in :class:`Evidence`, only those more object than background,
     :func:`blend_behind`, but any in a pinhole, :func:`doubt_pinholes`: the
     shaded line under a static vase's lip has a verified room plate of its own
-    colour, and judged it cut a notch through the lip). Not through ``paper``, the pixels the table plate
-    matches closely (the plane's own colour at that point, not a shadow of it):
-    from an object part of the paper's colour resting on it there is no edge,
+    colour, and judged it cut a notch through the lip). Not through ``paper``,
+    the pixels the table plate matches closely (the plane's own colour at that
+    point, not a shadow of it): from an object part of the paper's colour resting on it there is no edge,
     and a grown region flooded the paper up to the printed rings. So a white
     object's part that looks exactly like the paper where it stands stays to
     the other views (a plinth's top is not ``paper``: the table plate there is
