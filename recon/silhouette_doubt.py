@@ -28,8 +28,8 @@ from scipy.ndimage import binary_dilation
 
 __all__ = ["Plate", "Evidence", "doubtful_pixels", "texture_match", "colour_dist", "colour_gradient", "colour_range",
            "plate_envelope", "range_dist", "shadow_dist", "colour_set", "in_set", "major_colours", "MAJOR_SHARE",
-           "doubt_joined", "blend_behind", "doubt_across", "doubt_unlike", "doubt_enclosed", "doubt_pinholes", "reach",
-           "PINHOLE_SHARE"]
+           "doubt_joined", "blend_behind", "blend_alpha", "doubt_across", "doubt_unlike", "doubt_enclosed",
+           "doubt_pinholes", "reach", "PINHOLE_SHARE"]
 
 
 @dataclass(frozen=True)
@@ -265,11 +265,17 @@ def blend_behind(img: np.ndarray, held: np.ndarray, ring: np.ndarray, background
     F, has_F = near_mean(held & (cv2.dilate(ring.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0))
     # where no plate is trusted, the colour just beyond the ring (the held pixels' outside, two pixels off)
     B_out, has_B = near_mean(cv2.dilate((held | ring).astype(np.uint8), np.ones((3, 3), np.uint8)) == 0)
-    B = np.where(usable[..., None], background.astype(np.float32), B_out)
+    alpha, decidable = blend_alpha(f_img, F, np.where(usable[..., None], background.astype(np.float32), B_out), tau)
+    return ring & has_F & (usable | has_B) & decidable & (alpha < 0.5)
+
+
+def blend_alpha(img: np.ndarray, F: np.ndarray, B: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]:
+    """A blended pixel's coverage ``alpha = (I - B).(F - B) / |F - B|^2`` (h, w) float32 between the object's
+    colour ``F`` and the background's ``B`` (h, w, 3) float32, and where it can be told (h, w) bool: the two
+    colours more than ``3 tau`` apart in some channel."""
     fb = F - B
-    ok = ring & has_F & (usable | has_B) & (np.abs(fb).max(-1) > 3.0 * tau)
-    alpha = ((f_img - B) * fb).sum(-1) / np.maximum((fb * fb).sum(-1), 1e-6)
-    return ok & (alpha < 0.5)
+    alpha = ((img - B) * fb).sum(-1) / np.maximum((fb * fb).sum(-1), 1e-6)
+    return alpha, np.abs(fb).max(-1) > 3.0 * tau
 
 
 def doubt_across(mask: np.ndarray, joined: np.ndarray, doubtful: np.ndarray, unvouched: np.ndarray,

@@ -118,6 +118,7 @@ from .silhouette_checks import camera_azimuths_deg, fill_gaps, frame_status
 from .silhouette_doubt import (
     Evidence,
     Plate,
+    blend_alpha,
     blend_behind,
     colour_dist,
     colour_set,
@@ -546,11 +547,8 @@ def _alpha_outline(img, mask, background, usable, tau) -> np.ndarray:
     f_img = img.astype(np.float32)
     weight = cv2.boxFilter(inner, -1, (7, 7), normalize=False)
     F = cv2.boxFilter(f_img * inner[..., None], -1, (7, 7), normalize=False) / np.maximum(weight, 1e-6)[..., None]
-    B = background.astype(np.float32)
-    fb = F - B
-    den = (fb * fb).sum(-1)
-    ok = band & usable & (weight > 0.5) & (np.abs(fb).max(-1) > 3.0 * tau)
-    alpha = ((f_img - B) * fb).sum(-1) / np.maximum(den, 1e-6)
+    alpha, decidable = blend_alpha(f_img, F, background.astype(np.float32), tau)
+    ok = band & usable & (weight > 0.5) & decidable
     out = mask.copy()
     out[ok] = alpha[ok] >= 0.5
     return out
