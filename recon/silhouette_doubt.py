@@ -28,8 +28,8 @@ from scipy.ndimage import binary_dilation
 
 __all__ = ["Plate", "Evidence", "doubtful_pixels", "texture_match", "colour_dist", "colour_gradient", "colour_range",
            "plate_envelope", "range_dist", "shadow_dist", "colour_set", "in_set", "major_colours", "MAJOR_SHARE",
-           "doubt_joined", "blend_behind", "blend_alpha", "doubt_across", "doubt_unlike", "doubt_enclosed",
-           "doubt_pinholes", "reach", "PINHOLE_SHARE"]
+           "doubt_joined", "blend_behind", "blend_alpha", "window_mean", "doubt_across", "doubt_unlike",
+           "doubt_enclosed", "doubt_pinholes", "reach", "PINHOLE_SHARE"]
 
 
 @dataclass(frozen=True)
@@ -254,19 +254,22 @@ def blend_behind(img: np.ndarray, held: np.ndarray, ring: np.ndarray, background
     backdrop's within the outermost pixel still reads as the backdrop there.
     """
     f_img = img.astype(np.float32)
-
-    def near_mean(sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        wgt = cv2.boxFilter(sel.astype(np.float32), -1, (7, 7), normalize=False)
-        mean = cv2.boxFilter(f_img * sel[..., None], -1, (7, 7), normalize=False) / np.maximum(wgt, 1e-6)[..., None]
-        return mean, wgt > 0.5
-
+    k3 = np.ones((3, 3), np.uint8)
     # the object's colour at the outline: the held pixels next to the ring (further in, a curved body's
     # shading turns: its lit middle made the shaded limb's own pixels look like the background)
-    F, has_F = near_mean(held & (cv2.dilate(ring.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0))
+    F, has_F = window_mean(f_img, held & (cv2.dilate(ring.astype(np.uint8), k3) > 0))
     # where no plate is trusted, the colour just beyond the ring (the held pixels' outside, two pixels off)
-    B_out, has_B = near_mean(cv2.dilate((held | ring).astype(np.uint8), np.ones((3, 3), np.uint8)) == 0)
+    B_out, has_B = window_mean(f_img, cv2.dilate((held | ring).astype(np.uint8), k3) == 0)
     alpha, decidable = blend_alpha(f_img, F, np.where(usable[..., None], background.astype(np.float32), B_out), tau)
     return ring & has_F & (usable | has_B) & decidable & (alpha < 0.5)
+
+
+def window_mean(img: np.ndarray, sel: np.ndarray, size: int = 7) -> tuple[np.ndarray, np.ndarray]:
+    """Mean colour (h, w, 3) float32 of the ``sel`` pixels (h, w) bool of ``img`` (h, w, 3) within ``size`` x
+    ``size`` of each pixel, and where there is any (h, w) bool."""
+    weight = cv2.boxFilter(sel.astype(np.float32), -1, (size, size), normalize=False)
+    mean = cv2.boxFilter(img.astype(np.float32) * sel[..., None], -1, (size, size), normalize=False)
+    return mean / np.maximum(weight, 1e-6)[..., None], weight > 0.5
 
 
 def blend_alpha(img: np.ndarray, F: np.ndarray, B: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]:

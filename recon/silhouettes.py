@@ -134,6 +134,7 @@ from .silhouette_doubt import (
     reach,
     shadow_dist,
     texture_match,
+    window_mean,
 )
 from .silhouette_plates import PLATE_BORDER_MM, STRONG, Plates, ground_match, median_frames, rectify_to_table
 
@@ -543,12 +544,9 @@ def _alpha_outline(img, mask, background, usable, tau) -> np.ndarray:
     m8 = mask.astype(np.uint8)
     k3 = np.ones((3, 3), np.uint8)
     band = (cv2.dilate(m8, k3) > 0) & (cv2.erode(m8, k3) == 0)
-    inner = cv2.erode(m8, np.ones((5, 5), np.uint8)).astype(np.float32)
-    f_img = img.astype(np.float32)
-    weight = cv2.boxFilter(inner, -1, (7, 7), normalize=False)
-    F = cv2.boxFilter(f_img * inner[..., None], -1, (7, 7), normalize=False) / np.maximum(weight, 1e-6)[..., None]
-    alpha, decidable = blend_alpha(f_img, F, background.astype(np.float32), tau)
-    ok = band & usable & (weight > 0.5) & decidable
+    F, has_F = _object_colour_near(img, mask, 7)
+    alpha, decidable = blend_alpha(img.astype(np.float32), F, background.astype(np.float32), tau)
+    ok = band & usable & has_F & decidable
     out = mask.copy()
     out[ok] = alpha[ok] >= 0.5
     return out
@@ -591,10 +589,7 @@ def _clean(mask: np.ndarray, base: np.ndarray, explained: np.ndarray) -> np.ndar
 def _object_colour_near(img: np.ndarray, mask: np.ndarray, size: int = 11) -> tuple[np.ndarray, np.ndarray]:
     """Mean colour (h, w, 3) float32 of the mask pixels at least two pixels inside, within ``size`` x
     ``size``, and where that mean exists (h, w) bool."""
-    inner = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(np.float32)
-    weight = cv2.boxFilter(inner, -1, (size, size), normalize=False)
-    F = cv2.boxFilter(img.astype(np.float32) * inner[..., None], -1, (size, size), normalize=False)
-    return F / np.maximum(weight, 1e-6)[..., None], weight > 0.5
+    return window_mean(img, cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0, size)
 
 
 def _outline_support(img, mask, ev: Evidence, tau) -> float:
