@@ -106,11 +106,20 @@ def _chamfer_pct(model_ply: Path, gt_ply: Path) -> tuple[float, int, bool]:
     return 100.0 * float(ch) / diag, len(m.split(only_watertight=False)), bool(m.is_watertight)
 
 
-def _turntable(*args: str) -> tuple[int, float]:
+def _turntable(*args: str) -> tuple[int, float, str]:
+    """Run ``python -m turntable ARGS`` from this tree: (exit code, seconds, last line of its stderr)."""
     t0 = time.perf_counter()
     p = subprocess.run([sys.executable, "-m", "turntable", *args], cwd=ROOT, capture_output=True, text=True,
                        env={**os.environ, "PYTHONPATH": str(ROOT)})
-    return p.returncode, time.perf_counter() - t0
+    last = (p.stderr.strip().splitlines() or [""])[-1]
+    return p.returncode, time.perf_counter() - t0, last
+
+
+def _size(text: str) -> str:
+    w, _, h = text.partition("x")
+    if not (w.isdigit() and h.isdigit() and int(w) >= 64 and int(h) >= 64):
+        raise argparse.ArgumentTypeError(f"expected WxH in pixels (at least 64x64), e.g. 640x480, got {text!r}")
+    return text
 
 
 def _render(work: Path, obj: str, backdrop: str, seed: int, size: str, albedo: str) -> Path:
@@ -123,11 +132,11 @@ def _render(work: Path, obj: str, backdrop: str, seed: int, size: str, albedo: s
         source = str(work / f"{obj}.obj")
         if not Path(source).exists():
             _sdf_mesh(obj, Path(source))
-    rc, _ = _turntable("synth", str(d), "--object", source, "--albedo", albedo, "--backdrop", backdrop,
-                       "--size", f"{w}x{h}", "--focal-px", f"{1500.0 * w / 1280:g}", "--frames", "36",
-                       "--seed", str(seed), "--overwrite")
+    rc, _, err = _turntable("synth", str(d), "--object", source, "--albedo", albedo, "--backdrop", backdrop,
+                            "--size", f"{w}x{h}", "--focal-px", f"{1500.0 * w / 1280:g}", "--frames", "36",
+                            "--seed", str(seed), "--overwrite")
     if rc != 0:
-        raise RuntimeError(f"turntable synth failed for {d.name} (exit {rc})")
+        raise SystemExit(f"benchmarks/white_e2e.py: turntable synth failed for {d.name} (exit {rc}): {err}")
     return d
 
 
@@ -138,11 +147,13 @@ def main(argv: list[str]) -> None:
                     choices=[*BUILT_IN, *SHAPES])
     ap.add_argument("--backdrops", nargs="+", default=["dark", "light"], choices=["dark", "light"])
     ap.add_argument("--seeds", nargs="+", type=int, default=[3, 4])
-    ap.add_argument("--size", default="640x480")
+    ap.add_argument("--size", type=_size, default="640x480")
     ap.add_argument("--albedo", default="white")
     ap.add_argument("--no-ideal", action="store_true", help="skip the run with the true cameras and silhouettes")
     args = ap.parse_args(argv)
     work = Path(args.work)
+    if work.exists() and not work.is_dir():
+        ap.error(f"WORK_DIR {work} exists and is not a folder")
     work.mkdir(parents=True, exist_ok=True)
     print(f"## White on white, end to end — {datetime.date.today()}, {platform.platform()}, {os.cpu_count()} CPUs, "
           f"{args.size}, albedo {args.albedo}\n")
@@ -154,8 +165,11 @@ def main(argv: list[str]) -> None:
             for seed in args.seeds:
                 seq = _render(work, obj, backdrop, seed, args.size, args.albedo)
                 out = work / "runs" / seq.name
-                rc, dt = _turntable("reconstruct", str(seq / "images"), "--r-outer", "80", "--r-inner", "50",
-                                    "--stroke", "3", "--no-texture", "--out", str(out / "auto"), "--overwrite", "-q")
+                rc, dt, err = _turntable("reconstruct", str(seq / "images"), "--r-outer", "80", "--r-inner", "50",
+                                         "--stroke", "3", "--no-texture", "--out", str(out / "auto"), "--overwrite",
+                                         "-q")
+                if rc != 0:
+                    print(f"<!-- {seq.name}: exit {rc}: {err} -->", flush=True)
                 model = out / "auto" / "model.ply"
                 ch, pieces, wt = _chamfer_pct(model, seq / "object_gt.ply") if model.exists() else (np.nan, 0, False)
                 ideal = np.nan
