@@ -39,6 +39,7 @@ import argparse
 import datetime
 import os
 import platform
+import shutil
 import subprocess
 import sys
 import time
@@ -47,6 +48,9 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from resolution import chamfer_pct  # noqa: E402
+
 BUILT_IN = ("vase", "figure", "cup", "chair")
 SHAPES = ("teapot", "bunny", "snowman", "box")
 
@@ -93,17 +97,12 @@ def _sdf_mesh(name: str, path: Path) -> None:
     trimesh.Trimesh(v + g[0], f).export(path)
 
 
-def _chamfer_pct(model_ply: Path, gt_ply: Path) -> tuple[float, int, bool]:
+def _score(model_ply: Path, gt_ply: Path) -> tuple[float, int, bool]:
+    """Chamfer % of the diagonal (:func:`resolution.chamfer_pct`), connected pieces, watertight."""
     import trimesh
-    from scipy.spatial import cKDTree
 
-    gt = trimesh.load(gt_ply)
     m = trimesh.load(model_ply)
-    m.vertices = m.vertices * 1000.0  # the PLY is in metres
-    a, b = m.sample(30000, seed=0), gt.sample(30000, seed=0)
-    ch = 0.5 * (cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
-    diag = float(np.linalg.norm(gt.bounds[1] - gt.bounds[0]))
-    return 100.0 * float(ch) / diag, len(m.split(only_watertight=False)), bool(m.is_watertight)
+    return chamfer_pct(model_ply, gt_ply), len(m.split(only_watertight=False)), bool(m.is_watertight)
 
 
 def _turntable(*args: str) -> tuple[int, float, str]:
@@ -165,20 +164,21 @@ def main(argv: list[str]) -> None:
             for seed in args.seeds:
                 seq = _render(work, obj, backdrop, seed, args.size, args.albedo)
                 out = work / "runs" / seq.name
+                shutil.rmtree(out, ignore_errors=True)  # a failed run must not be scored on an earlier run's model
                 rc, dt, err = _turntable("reconstruct", str(seq / "images"), "--r-outer", "80", "--r-inner", "50",
                                          "--stroke", "3", "--no-texture", "--out", str(out / "auto"), "--overwrite",
                                          "-q")
                 if rc != 0:
                     print(f"<!-- {seq.name}: exit {rc}: {err} -->", flush=True)
                 model = out / "auto" / "model.ply"
-                ch, pieces, wt = _chamfer_pct(model, seq / "object_gt.ply") if model.exists() else (np.nan, 0, False)
+                ch, pieces, wt = _score(model, seq / "object_gt.ply") if model.exists() else (np.nan, 0, False)
                 ideal = np.nan
                 if not args.no_ideal:
                     _turntable("reconstruct", str(seq / "images"), "--cameras", str(seq / "cameras_gt.json"),
                                "--masks", str(seq / "masks"), "--no-texture", "--no-fusion",
                                "--out", str(out / "ideal"), "--overwrite", "-q")
                     if (out / "ideal" / "model.ply").exists():
-                        ideal = _chamfer_pct(out / "ideal" / "model.ply", seq / "object_gt.ply")[0]
+                        ideal = chamfer_pct(out / "ideal" / "model.ply", seq / "object_gt.ply")
                 if not ch <= 1.0:
                     over.append(seq.name)
                 print(f"| {seq.name} | {rc} | {pieces} | {wt} | {ch:.2f} | {dt:.0f} | {ideal:.2f} |", flush=True)
