@@ -75,6 +75,10 @@ a fifth of them hold (their masks; their unknown too off the paper) is
 unknown in every view that shows it so (:func:`held_alike`): which views
 set a white vase's lit foot off from the paper behind it, or its shaded
 neck off from a wall of its grey, is chance, and the others carved it.
+Of a turning object, a static part that no plate vouches for (a head over
+the axis, a plinth's top) and that a fifth of the views alike hold in their
+masks is unknown in the views alike that left it out, where it lies within
+the wider reach of what they hold (:func:`held_static`).
 Last of all, a small hole in what a frame holds that is doubtful throughout
 (:func:`recon.silhouette_doubt.doubt_pinholes`) is unknown where its rays
 run through what every other view holds (:func:`carved_alone`: a few pixels
@@ -389,6 +393,27 @@ def held_alike(alike: np.ndarray, masks: np.ndarray, doubt: np.ndarray | None = 
     votes = masks if doubt is None else masks | doubt
     keep = steady & ((alike & votes).sum(axis=0) >= ACROSS_SHARE * n)
     return alike & keep[None]
+
+
+def held_static(alike: np.ndarray, masks: np.ndarray, cands: np.ndarray) -> np.ndarray:
+    """(V, H, W) bool: the candidates ``cands`` (V, H, W: doubtful pixels no plate vouches for) at a static
+    part of the object, which other views' masks hold.
+
+    ``alike``: (V, H, W) bool, where a view shows the pixel's static colour (the room plate's, within the
+    noise); ``masks``: (V, H, W) bool. A pixel alike in ``STRONG`` of the views shows the same thing in all of
+    them: where a fifth of those views (``ACROSS_SHARE``) hold it in their masks, it is a static part of
+    the object (a head over the axis), and a view alike there that left it out, across an edge that kept
+    it from the mask, has the same evidence. :func:`held_alike` does this for a wholly static object; here
+    a turning one's static part is held where no plate vouches for it (a white figure's head over a dark
+    wall seen from 20 deg: in its mask in 12 views of 36, beyond its shaded neck in 20, which carved it off
+    and cut the arm from the body). A poster behind a turning object is what its masks hold only while the
+    object covers it, in the object's colours, not alike; the wall or paper of the object's colour is
+    vouched for by its plate.
+    """
+    n = alike.sum(axis=0)
+    steady = n >= STRONG * len(alike)
+    keep = steady & ((alike & masks).sum(axis=0) >= ACROSS_SHARE * n)
+    return cands & alike & keep[None]
 
 
 def _hold_across(base: np.ndarray, cands, doubtful_box: np.ndarray, box) -> np.ndarray:
@@ -915,6 +940,16 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
             wide_ok = wide_votes(across_wide[used], masks[used] | unknown[used])
             for i in used:
                 cand = across_wide[i] & wide_ok & ~unknown[i]
+                unknown[i] |= _hold_across(masks[i] | unknown[i], ((cand, wide),), doubtful[i], box) \
+                    & union & ~masks[i]
+    if used:  # static parts the masks of a fifth of the views alike hold (held_static), within the wide gap
+        sub = (np.asarray(used), *box)
+        cands = np.stack([doubtful[i] & outs[i].unvouched for i in used]) & ~(masks[sub] | unknown[sub])
+        static_held = held_static(plates.room_alike[used], masks[sub], cands)
+        for k, i in enumerate(used):
+            if static_held[k].any():
+                cand = np.zeros((H, W), bool)
+                cand[box] = static_held[k]
                 unknown[i] |= _hold_across(masks[i] | unknown[i], ((cand, wide),), doubtful[i], box) \
                     & union & ~masks[i]
     for i in used:  # thin parts beyond an edge, unlike the background (doubt_unlike); then doubtful holes

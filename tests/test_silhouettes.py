@@ -787,6 +787,40 @@ def test_views_that_show_the_same_colour_get_the_same_verdict():
     assert not held_alike(alike, masks).any() and not held_alike(alike, masks, doubt).any()
 
 
+def test_a_turning_objects_static_part_the_masks_hold_is_held_where_no_plate_vouches_for_it():
+    """36 views of a turning figure, one row of pixels: its head over the axis (the static colour in every
+    view, in the mask of 12, a doubtful candidate no plate vouches for in the other 24); a pixel of the head
+    held in only 6 masks (under a fifth); a pixel an arm turns past (the static colour in 20 views only);
+    the wall beside the head, in the mask of 12 views too but only where the arm covered it (not alike
+    there); a head pixel in the mask of 12 views that is no candidate elsewhere (vouched for). Only the
+    head's candidates are held; never a pixel that is no candidate, nor one a view shows in another colour."""
+    from recon.silhouettes import held_static
+
+    V = 36
+    alike = np.ones((V, 1, 5), bool)
+    masks = np.zeros_like(alike)
+    cands = np.zeros_like(alike)
+    head, few, passing, wall, vouched = range(5)
+    masks[:12, 0, head] = True
+    cands[12:, 0, head] = True
+    alike[20, 0, head] = False  # one view sees the arm there
+    masks[:6, 0, few] = True
+    cands[6:, 0, few] = True
+    alike[20:, 0, passing] = False
+    masks[:10, 0, passing] = True
+    cands[10:20, 0, passing] = True
+    masks[:12, 0, wall] = True
+    alike[:12, 0, wall] = False
+    cands[12:, 0, wall] = True
+    masks[:12, 0, vouched] = True
+    got = held_static(alike, masks, cands)
+    assert got[12:, 0, head].sum() == 23 and not got[20, 0, head] and not got[:12, 0, head].any()
+    assert not got[:, 0, few].any() and not got[:, 0, passing].any() and not got[:, 0, wall].any()
+    assert not got[:, 0, vouched].any()
+    masks[:8, 0, few] = True  # 8 of 36: a fifth or more
+    assert held_static(alike, masks, cands)[8:, 0, few].all()
+
+
 def test_white_vase_on_a_light_wall_is_not_carved_by_the_views_that_see_it_like_the_paper(tmp_path):
     """The white vase on a light wall under another light (seed 4), a full turn. A body of revolution: every
     view shows the same picture, yet where its lit foot matched the paper some views' masks held it and the
