@@ -385,14 +385,18 @@ def held_alike(alike: np.ndarray, masks: np.ndarray, doubt: np.ndarray | None = 
     paper round a 1280 x 960 vase's foot (two pieces). Nothing of a turning object: what a fifth of the
     views left unknown there may be what it passed (the wall behind a white figure's head, 0.97 -> 1.10 %).
     """
-    n = alike.sum(axis=0)
-    steady = n >= STRONG * len(alike)
+    steady = alike.sum(axis=0) >= STRONG * len(alike)
     core = masks.mean(axis=0) >= 0.5
     if (steady & core).sum() < ALIKE_STATIC * max(int(core.sum()), 1):
         return np.zeros_like(alike)
-    votes = masks if doubt is None else masks | doubt
-    keep = steady & ((alike & votes).sum(axis=0) >= ACROSS_SHARE * n)
-    return alike & keep[None]
+    return alike & _voted_alike(alike, masks if doubt is None else masks | doubt)[None]
+
+
+def _voted_alike(alike: np.ndarray, votes: np.ndarray) -> np.ndarray:
+    """(H, W) bool: pixels alike (V, H, W) in ``STRONG`` of the views, a fifth (``ACROSS_SHARE``) of which
+    hold them (``votes``, V, H, W) (:func:`held_alike`, :func:`held_static`)."""
+    n = alike.sum(axis=0)
+    return (n >= STRONG * len(alike)) & ((alike & votes).sum(axis=0) >= ACROSS_SHARE * n)
 
 
 def held_static(alike: np.ndarray, masks: np.ndarray, cands: np.ndarray) -> np.ndarray:
@@ -405,15 +409,12 @@ def held_static(alike: np.ndarray, masks: np.ndarray, cands: np.ndarray) -> np.n
     the object (a head over the axis), and a view alike there that left it out, across an edge that kept
     it from the mask, has the same evidence. :func:`held_alike` does this for a wholly static object; here
     a turning one's static part is held where no plate vouches for it (a white figure's head over a dark
-    wall seen from 20 deg: in its mask in 12 views of 36, beyond its shaded neck in 20, which carved it off
-    and cut the arm from the body). A poster behind a turning object is what its masks hold only while the
+    wall seen from 20 deg: in its mask in 12 views of 36, beyond its shaded neck in the other 20, which
+    carved it off). A poster behind a turning object is what its masks hold only while the
     object covers it, in the object's colours, not alike; the wall or paper of the object's colour is
     vouched for by its plate.
     """
-    n = alike.sum(axis=0)
-    steady = n >= STRONG * len(alike)
-    keep = steady & ((alike & masks).sum(axis=0) >= ACROSS_SHARE * n)
-    return cands & alike & keep[None]
+    return cands & alike & _voted_alike(alike, masks)[None]
 
 
 def _hold_across(base: np.ndarray, cands, doubtful_box: np.ndarray, box) -> np.ndarray:
