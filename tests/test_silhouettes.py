@@ -405,6 +405,33 @@ def test_a_recognised_ground_is_named_and_shown_in_the_summary():
     assert not any("printed ground" in line for line in ReconstructSummary.from_json(d).lines())
 
 
+def test_many_empty_silhouettes_get_a_hint_on_screen():
+    """A quarter of the automatic silhouettes empty (dropped, or kept only to close a gap) makes the run say
+    what would tell the object from its background; a few empty ones, or empty --masks, do not; with a
+    coloured ground recognised it does not suggest printing one. The hint is a summary line of its own."""
+    from turntable.stages.silhouettes import silhouette_advice
+    from turntable.stages.summary import ReconstructSummary
+
+    rejected = {f"f{i:02d}.jpg": f"empty silhouette ({900 + i} px)" for i in range(8)}
+    kept = {"f20.jpg": "kept although empty silhouette (433 px) (dropping it leaves 40 deg of the turn without a view)",
+            "f21.jpg": "silhouette area jumps to 222% of its neighbours'"}
+    hint = silhouette_advice(rejected, kept, 36)  # 9 empty of 36: a quarter
+    assert hint is not None and hint.startswith("9 of 36 automatic silhouettes") and "--background green" in hint
+    assert silhouette_advice(rejected, {}, 36) is None  # 8 of 36: fewer than a quarter
+    green = silhouette_advice(rejected, kept, 36, (0.24, 0.53, 0.23))
+    assert green is not None and "--background" not in green and "dark backdrop" in green
+    masks_given = {f"f{i:02d}.jpg": "the mask is empty (f.png has no pixel above 127, the brightest is 0)"
+                   for i in range(20)}
+    assert silhouette_advice(masks_given, {}, 36) is None
+    d = {"frames_used": 28, "focal_px": 750.0, "fusion": "hull kept", "time_s": {"total": 1.0},
+         "mesh": {"vertices": 4, "faces": 4, "watertight": True, "volume_cm3": 1.0, "extent_mm": [1, 1, 1]},
+         "silhouettes": {"rejected": rejected, "conservative": kept, "advice": hint}}
+    shown = [line for line in ReconstructSummary.from_json(d).lines() if line.startswith("  hint ")]
+    assert shown == [f"  hint            {hint}"]
+    del d["silhouettes"]["advice"]
+    assert not any(line.startswith("  hint ") for line in ReconstructSummary.from_json(d).lines())
+
+
 def test_doubt_joined_keeps_a_shaded_side_and_stops_at_the_wall():
     """A white object's lit half is in the mask; its shaded half fades smoothly from the lit grey to a
     dark grey and meets a wall of the object's mid grey at an edge. Every pixel outside the mask is

@@ -38,6 +38,24 @@ def describe_ground(chroma) -> str:
             "next to the object the paper is told by its colour")
 
 
+EMPTY_SHARE = 0.25  # this share of the automatic silhouettes (nearly) empty: the run says what would help
+
+
+def silhouette_advice(rejected: dict[str, str], conservative: dict[str, str], n_frames: int,
+                      ground=None) -> str | None:
+    """A hint when many automatic silhouettes came out (nearly) empty (``rejected`` and ``conservative``: the
+    frames' reasons, :func:`verdicts`): the object looks like what is behind it, and what would tell them apart.
+    None when few did (or with ``--masks``, whose empty masks say "the mask is empty")."""
+    empty = sum("empty silhouette" in why for why in (*rejected.values(), *conservative.values()))
+    if n_frames <= 0 or empty < max(2, EMPTY_SHARE * n_frames):
+        return None
+    ground_tip = "" if ground is not None else \
+        ", print the target on a coloured ground (turntable pattern --background green)"
+    return (f"{empty} of {n_frames} automatic silhouettes came out (nearly) empty: the object looks like what "
+            "is behind it (a white object on the white paper, before a light wall?). Photograph it before a dark "
+            f"backdrop{ground_tip}, or give --masks (README: 'Scanning a white object')")
+
+
 def read_masks(masks_dir: Path, names: list[str], ws: WorkSize,
                 progress: Progress | None = None) -> tuple[np.ndarray, dict[str, str]]:
     """Masks matched to frames by file stem, as large as the photos; any image format; > 127 = object.

@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from .silhouettes import describe_ground, ground_name
+from .silhouettes import describe_ground, ground_name, silhouette_advice
 
 __all__ = ["MeshSummary", "ReconstructSummary", "failed_checks", "summarise"]
 
@@ -42,7 +42,8 @@ class ReconstructSummary:
 
     ``working_volume`` is the hull stage's report (radius, height, how it grew, what was clipped),
     ``silhouettes`` the frames ``rejected`` and kept ``conservative`` with their reasons (and
-    ``printed_ground``, its hue and chromaticity, where a coloured printed ground was recognised),
+    ``printed_ground``, its hue and chromaticity, where a coloured printed ground was recognised, and
+    ``advice`` where many automatic silhouettes came out empty: :func:`silhouette_advice`),
     ``exif_focal`` the photos' EXIF focal length against the calibrated one (or None),
     ``work_size`` the size the stages after calibration ran at, ``time_s`` each stage's wall time
     and the ``total``, ``files`` what OUT holds (paths as published), ``texture`` the photo texture's
@@ -133,6 +134,9 @@ class ReconstructSummary:
             out += [f"  note            {note}" for note in v.get("notes", [])]
         out += [f"  conservative    {name}: {why}"
                 for name, why in (self.silhouettes or {}).get("conservative", {}).items()]
+        advice = (self.silhouettes or {}).get("advice")
+        if advice:
+            out.append(f"  hint            {advice}")
         ground = (self.silhouettes or {}).get("printed_ground")
         if ground:
             out.append(f"  printed ground  {describe_ground(ground['chromaticity'])}")
@@ -153,6 +157,8 @@ def summarise(*, out, seq, names, skipped, mesh, stats, fusion_note, carved, fai
     std_f = diagnostics.focal_std_px if diagnostics is not None else None
     rms = [fp.rms_px for fp in seq.frames if fp.ok and not math.isnan(fp.rms_px)]
     lo, hi = mesh.vertices_table.min(axis=0), mesh.vertices_table.max(axis=0)
+    advice = silhouette_advice(carved.rejected, carved.conservative, len(carved.keep) + len(carved.rejected),
+                               carved.silhouettes.ground)
     return ReconstructSummary(
         out=frame_name(str(out)), frames_used=len(names), frames_skipped=dict(skipped),
         focal_px=float(seq.intrinsics.focal_px),
@@ -165,6 +171,7 @@ def summarise(*, out, seq, names, skipped, mesh, stats, fusion_note, carved, fai
         fusion=fusion_note, warnings=list(diagnostics.warnings) if diagnostics is not None else [],
         working_volume=carved.report,
         silhouettes={"rejected": dict(carved.rejected), "conservative": dict(carved.conservative),
+                     **({} if advice is None else {"advice": advice}),
                      **({} if carved.silhouettes.ground is None else
                         {"printed_ground": {"colour": ground_name(carved.silhouettes.ground),
                                             "chromaticity": [round(float(c), 4) for c in carved.silhouettes.ground]}})},
