@@ -25,10 +25,14 @@ limited ones. Albedo: ``white`` (0.85, 0.84, 0.82); ``--albedo R,G,B`` for
 another off-white.
 
 Prints per sequence: exit code, pieces, watertight, Chamfer % of the
-diagonal (auto and ideal), and seconds. Renders are cached in WORK_DIR.
+diagonal (auto and ideal), and seconds. Renders are cached in WORK_DIR (each
+with the key of the synth's sources and arguments it was made with: a render
+from before a change of the built-in objects is made again). ``--elevation``,
+``--blur`` and ``--noise`` render the scenes another way (a higher camera, a
+soft lens, a noisier sensor).
 
     nice .venv/bin/python benchmarks/white_e2e.py WORK_DIR [--objects vase figure teapot]
-        [--backdrops dark light] [--seeds 3 4] [--size 640x480]
+        [--backdrops dark light] [--seeds 3 4] [--size 640x480] [--elevation 40] [--blur 1] [--noise 4]
 
 (~1.5 min per sequence at 640x480 on 2 cores: render, auto run, ideal run.)
 """
@@ -37,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import hashlib
 import os
 import platform
 import shutil
@@ -121,21 +126,39 @@ def _size(text: str) -> str:
     return text
 
 
-def _render(work: Path, obj: str, backdrop: str, seed: int, size: str, albedo: str) -> Path:
+def _synth_key(args: list[str]) -> str:
+    """What a cached render depends on: the synth's sources (its built-in objects, scene and renderer) and its
+    arguments. A render made before a change there (the figure made one body) is not scored as the new one."""
+    h = hashlib.sha256(" ".join(args).encode())
+    for f in sorted((ROOT / "turntable" / "synth").glob("*.py")):
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def _render(work: Path, obj: str, backdrop: str, seed: int, size: str, albedo: str,
+            extra: dict[str, float]) -> Path:
+    """The sequence for these settings in WORK_DIR, rendered unless a render of the same synth and arguments is
+    there (``render_key.txt``). ``extra``: further synth options by name (``elevation-deg``, ``blur``, ``noise``)
+    where not the synth's default; they name the folder too."""
     w, h = (int(v) for v in size.split("x"))
-    d = work / f"{obj}_{backdrop}_s{seed}_{size}_{albedo.replace(',', '-')}"
-    if (d / "object_gt.ply").exists():
-        return d
+    tail = "".join(f"_{k.split('-')[0]}{v:g}" for k, v in extra.items())
+    d = work / f"{obj}_{backdrop}_s{seed}_{size}_{albedo.replace(',', '-')}{tail}"
     source = obj
     if obj in SHAPES:
         source = str(work / f"{obj}.obj")
         if not Path(source).exists():
             _sdf_mesh(obj, Path(source))
-    rc, _, err = _turntable("synth", str(d), "--object", source, "--albedo", albedo, "--backdrop", backdrop,
-                            "--size", f"{w}x{h}", "--focal-px", f"{1500.0 * w / 1280:g}", "--frames", "36",
-                            "--seed", str(seed), "--overwrite")
+    args = ["synth", str(d), "--object", source, "--albedo", albedo, "--backdrop", backdrop,
+            "--size", f"{w}x{h}", "--focal-px", f"{1500.0 * w / 1280:g}", "--frames", "36", "--seed", str(seed),
+            *(a for k, v in extra.items() for a in (f"--{k}", f"{v:g}")), "--overwrite"]
+    key = _synth_key(args)
+    stamp = d / "render_key.txt"
+    if (d / "object_gt.ply").exists() and stamp.exists() and stamp.read_text().strip() == key:
+        return d
+    rc, _, err = _turntable(*args)
     if rc != 0:
         raise SystemExit(f"benchmarks/white_e2e.py: turntable synth failed for {d.name} (exit {rc}): {err}")
+    stamp.write_text(key + "\n")
     return d
 
 
@@ -148,21 +171,27 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--seeds", nargs="+", type=int, default=[3, 4])
     ap.add_argument("--size", type=_size, default="640x480")
     ap.add_argument("--albedo", default="white")
+    ap.add_argument("--elevation", type=float, default=None, help="camera elevation, degrees (synth default: 30)")
+    ap.add_argument("--blur", type=float, default=None, help="optical blur sigma, pixels (synth default: 0)")
+    ap.add_argument("--noise", type=float, default=None, help="sensor noise at mid-grey, DN (synth default: 2)")
     ap.add_argument("--no-ideal", action="store_true", help="skip the run with the true cameras and silhouettes")
     args = ap.parse_args(argv)
+    extra = {k: v for k, v in (("elevation-deg", args.elevation), ("blur", args.blur), ("noise", args.noise))
+             if v is not None}
     work = Path(args.work)
     if work.exists() and not work.is_dir():
         ap.error(f"WORK_DIR {work} exists and is not a folder")
     work.mkdir(parents=True, exist_ok=True)
     print(f"## White on white, end to end — {datetime.date.today()}, {platform.platform()}, {os.cpu_count()} CPUs, "
-          f"{args.size}, albedo {args.albedo}\n")
+          f"{args.size}, albedo {args.albedo}"
+          + "".join(f", {k} {v:g}" for k, v in extra.items()) + "\n")
     print("| sequence | auto: exit | pieces | watertight | Chamfer % diag | s | ideal hull % diag |")
     print("|---|---:|---:|---|---:|---:|---:|")
     over = []
     for obj in args.objects:
         for backdrop in args.backdrops:
             for seed in args.seeds:
-                seq = _render(work, obj, backdrop, seed, args.size, args.albedo)
+                seq = _render(work, obj, backdrop, seed, args.size, args.albedo, extra)
                 out = work / "runs" / seq.name
                 shutil.rmtree(out, ignore_errors=True)  # a failed run must not be scored on an earlier run's model
                 rc, dt, err = _turntable("reconstruct", str(seq / "images"), "--r-outer", "80", "--r-inner", "50",
