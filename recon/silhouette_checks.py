@@ -23,9 +23,10 @@ import numpy as np
 
 from calib.camera import camera_centre_table
 
-__all__ = ["frame_status", "camera_azimuths_deg", "fill_gaps"]
+__all__ = ["frame_status", "camera_azimuths_deg", "fill_gaps", "EMPTY"]
 
 _MIN_AREA = 0.02  # a silhouette smaller than this fraction of the cylinder's image is "empty"
+EMPTY = "empty silhouette"  # the reason such a frame is rejected (and kept, where it closes a gap)
 _MIN_SUPPORT = 0.5  # outline fraction that must look like background
 
 
@@ -54,7 +55,7 @@ def frame_status(area_px: np.ndarray, support: np.ndarray, border_px: np.ndarray
         if region_px[i] == 0 or area[i] < _MIN_AREA * region_px[i]:
             quality[i] = 0.0
             status.append("rejected: the working volume is not in view" if region_px[i] == 0 else
-                          f"rejected: empty silhouette ({int(area[i])} px)")
+                          f"rejected: {EMPTY} ({int(area[i])} px)")
         elif border_px[i] > 0.25 * (W + H):
             status.append(f"conservative: silhouette touches the image border along {int(border_px[i])} px")
         elif not 0.67 <= ratio <= 1.5:

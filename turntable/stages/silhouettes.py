@@ -46,7 +46,9 @@ def silhouette_advice(rejected: dict[str, str], conservative: dict[str, str], n_
     """A hint when many automatic silhouettes came out (nearly) empty (``rejected`` and ``conservative``: the
     frames' reasons, :func:`verdicts`): the object looks like what is behind it, and what would tell them apart.
     None when few did (or with ``--masks``, whose empty masks say "the mask is empty")."""
-    empty = sum("empty silhouette" in why for why in (*rejected.values(), *conservative.values()))
+    from recon.silhouette_checks import EMPTY
+
+    empty = sum(EMPTY in why for why in (*rejected.values(), *conservative.values()))
     if n_frames <= 0 or empty < max(2, EMPTY_SHARE * n_frames):
         return None
     ground_tip = "" if ground is not None else \
