@@ -55,7 +55,8 @@ from calib.camera import as_K, as_poses
 from .types import VoxelHull
 
 __all__ = ["carve_hull", "silhouette_sdf_px", "largest_visible_radius_mm", "largest_visible_height_mm",
-           "largest_carvable_radius_mm", "hull_peak_bytes", "HullTooLarge", "drop_floating_bodies"]
+           "largest_carvable_radius_mm", "hull_peak_bytes", "HullTooLarge", "drop_floating_bodies",
+           "rejoin_cut_off"]
 
 _UNSEEN_PX = 1.0e6  # distance-map value that means "this view has no opinion"
 _BAND = 1.25 * math.sqrt(3.0) / 2.0  # refine when |D| < _BAND * cell edge (half diagonal + 25 %)
@@ -543,3 +544,67 @@ def drop_floating_bodies(hull: VoxelHull, ground_tol_mm: float = 3.0,
     vals[drop] = np.minimum(vals[drop], np.float32(-1e-3))
     dropped = sorted((float(v) * hull.voxel_mm ** 3 for v in vol[floating]), reverse=True)
     return replace(hull, values=vals, meta={**hull.meta, "floating_dropped": len(dropped)}), dropped
+
+
+def _body_labels(inside: np.ndarray, ground_tol_mm: float, voxel_mm: float):
+    """26-connected bodies of ``inside``: ``(labels, n, volumes (n,), floating (n,) bool)``, floating as
+    :func:`drop_floating_bodies` counts it (lowest layer more than the tolerance above the lowest body's)."""
+    from scipy import ndimage
+
+    lab, n = ndimage.label(inside, structure=np.ones((3, 3, 3), bool))
+    if n == 0:
+        return lab, 0, np.zeros(0, np.int64), np.zeros(0, bool)
+    vol = np.bincount(lab.ravel(), minlength=n + 1)[1:]
+    low = np.array([box[1].start for box in ndimage.find_objects(lab)])
+    return lab, n, vol, low > low.min() + max(ground_tol_mm / voxel_mm, 3.0)
+
+
+def rejoin_cut_off(hull: VoxelHull, before: VoxelHull, gap_mm: float = 4.0, min_fraction: float = 0.05,
+                   ground_tol_mm: float = 3.0) -> tuple[VoxelHull, int]:
+    """``hull`` with its large floating bodies joined again to the body standing on the table, where ``before``
+    joined them: ``(hull, bodies joined)``.
+
+    ``hull`` was carved from silhouettes that lost doubtful pixels which ``before`` (carved from the same
+    views before that) still held. Where that cut a part of at least ``min_fraction`` of the volume off the
+    standing body (:func:`drop_floating_bodies` would drop it), across a gap of at most ``gap_mm``, the
+    voxels that ``before`` holds within ``gap_mm`` of both come back (a white figure's static head on a grey
+    wall: the split of the doubt off the volume's outline gave the shaded neck, the wall's grey, to the wall
+    in half the views, and the head floated 3 mm above the torso). The two grids may differ: ``before`` is
+    sampled (trilinearly) at ``hull``'s voxel centres.
+    """
+    from scipy import ndimage
+
+    inside = hull.values > 0
+    lab, n, vol, floating = _body_labels(inside, ground_tol_mm, hull.voxel_mm)
+    if n <= 1 or not floating.any() or floating.all():
+        return hull, 0
+    standing = np.flatnonzero(~floating)
+    main = lab == standing[np.argmax(vol[standing])] + 1
+    big = np.flatnonzero(floating & (vol >= min_fraction * vol.sum()))
+    if not len(big):
+        return hull, 0
+    r = gap_mm / hull.voxel_mm
+    d_main = ndimage.distance_transform_edt(~main)
+    idx = np.indices(inside.shape).reshape(3, -1).T
+    coords = (hull.centres_table(idx) - before.origin_table) / before.voxel_mm
+    held = ndimage.map_coordinates(np.asarray(before.values, np.float32), coords.T, order=1, mode="constant",
+                                   cval=-1.0).reshape(inside.shape)
+    vals = hull.values.copy()
+    joined = 0
+    for b in big:
+        part = lab == b + 1
+        if d_main[part].min() > r + 1.0:
+            continue
+        near = (ndimage.distance_transform_edt(~part) <= r) & (d_main <= r) & (held > 0) & ~inside
+        if not near.any():
+            continue
+        trial = inside | near
+        tl, _ = ndimage.label(trial, structure=np.ones((3, 3, 3), bool))
+        if tl[part].max() != tl[main].max():  # each is one body of ``trial``: the same one, or still apart
+            continue
+        vals[near] = held[near]
+        inside = vals > 0
+        joined += 1
+    if not joined:
+        return hull, 0
+    return replace(hull, values=vals.astype(np.float32), meta={**hull.meta, "rejoined": joined}), joined

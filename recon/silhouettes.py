@@ -758,6 +758,20 @@ def _noise_tau(samples: np.ndarray) -> float:
     return max(_MIN_TAU, 1.5 * float(np.median(np.percentile(far, 95, axis=1))))
 
 
+def room_colour_set(imgs: np.ndarray, K: np.ndarray, T: np.ndarray, radius: float, union: np.ndarray) -> np.ndarray:
+    """(32, 32, 32) bool: the room's colours (:func:`recon.silhouette_doubt.colour_set`), seen outside the
+    working volume's image ``union`` (H, W) and off the table top round it (the paper is the table's); every
+    colour where fewer than 100 pixels are left."""
+    V, H, W = imgs.shape[:3]
+    room = ~union & ~np.any([cylinder_region(K, t, (W, H), radius + PLATE_BORDER_MM, 0.0) for t in T], axis=0)
+    return colour_set(imgs[:, room][:, ::7]) if room.sum() >= 100 else np.ones((32, 32, 32), bool)
+
+
+def plain_room(room_colours: np.ndarray) -> bool:
+    """Whether a room's colour set (:func:`room_colour_set`) is plain: its colours say what is not the room."""
+    return bool(room_colours.mean() < _PLAIN_ROOM and not room_colours.all())
+
+
 def _plates(imgs: np.ndarray, K: np.ndarray, T: np.ndarray, radius: float, regions: list[np.ndarray]):
     """The room and table plates of a sequence, or None where the working volume is out of view.
 
@@ -775,9 +789,7 @@ def _plates(imgs: np.ndarray, K: np.ndarray, T: np.ndarray, radius: float, regio
     outside = ~union
     samples = imgs[:, outside][:, ::7]
     tau = _noise_tau(samples) if outside.sum() >= 100 else _MIN_TAU
-    # the room's colours: outside the volume and off the table top around it (the paper is the table's)
-    room = outside & ~np.any([cylinder_region(K, t, (W, H), radius + PLATE_BORDER_MM, 0.0) for t in T], axis=0)
-    room_colours = colour_set(imgs[:, room][:, ::7]) if room.sum() >= 100 else np.ones((32, 32, 32), bool)
+    room_colours = room_colour_set(imgs, K, T, radius, union)
     plates = Plates(crops, imgs, K, T, (y0, x0), radius, tau, union[y0:y1, x0:x1], room_colours)
     return (slice(y0, y1), slice(x0, x1)), crops, tau, plates, union
 

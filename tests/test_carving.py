@@ -240,6 +240,39 @@ def test_floating_bodies_are_dropped_grounded_and_large_ones_kept():
     assert drop_floating_bodies(cut) == (cut, [])
 
 
+def test_a_part_the_split_cut_off_is_joined_where_the_hull_before_held_the_gap():
+    """A figure's head (1 mm voxels, Y up) that the split cut off the torso 3 mm below it: a floating body
+    ``drop_floating_bodies`` would drop. The hull carved before the split (on another grid: half a voxel
+    off) held the neck: it comes back, within 4 mm of both, and nothing else. A gap wider than that, a
+    small floating speck, or a gap the hull before did not hold stays as it was."""
+    from recon.carving import drop_floating_bodies, rejoin_cut_off
+
+    vals = np.full((40, 60, 40), -1.0, np.float32)
+    vals[10:30, 0:40, 10:30] = 1.0  # the torso on the table
+    vals[14:26, 43:55, 14:26] = 1.0  # the head, 3 mm above it (y 40-42 empty)
+    vals[2:4, 50:52, 2:4] = 1.0  # a speck floating beside it
+    cut = VoxelHull(values=vals, origin_table=np.zeros(3), voxel_mm=1.0)
+    before_vals = np.full((42, 62, 42), -1.0, np.float32)
+    before_vals[:, :58, :] = 1.0  # held everything up to the head's top (a wall of the object's grey)
+    before = VoxelHull(values=before_vals, origin_table=np.array([-0.5, -0.5, -0.5]), voxel_mm=1.0)
+    out, joined = rejoin_cut_off(cut, before)
+    assert joined == 1
+    added = (out.values > 0) & ~(vals > 0)
+    assert added[:, 40:43].any() and not added[:, :36].any() and not added[:, 47:].any()
+    assert (added.sum(axis=(0, 2)) > 0).sum() <= 8  # the neck's layers and a little round it, not a slab
+    assert drop_floating_bodies(out)[1] == [8.0]  # only the speck floats now
+    assert (out.values[2:4, 50:52, 2:4] > 0).all() and not added[:6, :, :6].any()
+    # the head 6 mm up: too far
+    far = vals.copy()
+    far[:, 40:60] = -1.0
+    far[14:26, 46:58, 14:26] = 1.0
+    assert rejoin_cut_off(dataclasses.replace(cut, values=far), before) == (dataclasses.replace(cut, values=far), 0)
+    # the hull before did not hold the neck either: nothing to join
+    gap = before_vals.copy()
+    gap[:, 41:44] = -1.0
+    assert rejoin_cut_off(cut, dataclasses.replace(before, values=gap))[1] == 0
+
+
 def test_a_hull_cut_in_two_is_joined_by_a_little_more_tolerance():
     """A figure on its plinth (1 mm voxels, Y up) whose plinth a few views cut from the legs: two pieces on
     the table. Carved again tolerating one more view (``carve_at(k)``), the legs stand on the plinth: one

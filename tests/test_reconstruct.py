@@ -463,6 +463,34 @@ def test_doubt_off_the_outline_splits_the_object_from_the_wall_along_its_edge(sc
     assert not whole[1].any()
 
 
+def test_the_split_keeps_what_the_room_never_shows():
+    """A static white head on a grey wall, joined to it through its shaded side (no edge there) and apart from
+    the mask (a neck of the wall's grey): the wall's flood takes the whole head. Seeded where the head shows a
+    colour the room does not (its lit side), the split keeps those pixels, and still none of the wall."""
+    from recon.silhouette_doubt import colour_set, in_set
+    from turntable.stages.volume import _wall_side
+
+    h, w = 120, 160
+    yy, xx = np.mgrid[0:h, 0:w]
+    img = np.full((h, w, 3), 113, np.uint8)  # the wall
+    mask = (yy >= 70) & (yy < 120) & (xx >= 60) & (xx < 100)  # the torso
+    img[mask] = 170
+    cy, cx, r = 45, 80, 15
+    head = (yy - cy) ** 2 + (xx - cx) ** 2 <= r * r
+    lit = np.clip(((xx - cx) - (yy - cy)) * 0.7 / r, 0.0, 1.0)  # lit from the upper right, the wall's grey below left
+    img[head] = np.round(113 + 80 * lit[head])[:, None].astype(np.uint8)
+    band = np.zeros_like(mask)
+    band[:2] = True  # the volume's outline: the image's top
+    unlike = head & ~in_set(img, colour_set(img[~head & ~mask]))
+    assert 0.2 * head.sum() < unlike.sum() < 0.8 * head.sum()
+    wall = ~head & ~mask
+    plain = _wall_side(img, mask, ~mask, band)
+    assert plain[head].all()  # without seeds the head goes with the wall
+    seeded = _wall_side(img, mask, ~mask, band, unlike)
+    assert not seeded[unlike].any()
+    assert seeded[wall].all()
+
+
 def test_the_split_keeps_the_shaded_neck_of_a_white_vase_on_a_light_wall(tmp_path):
     """A white vase on a light wall (seed 2, 640 x 480, 12 frames): its shaded neck has the wall's grey and the
     doubt runs from it up to the volume's outline in every view. The split along the photo's edges must give

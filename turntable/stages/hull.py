@@ -93,6 +93,12 @@ def _inside_mm3(hull) -> float:
     return float((hull.values > 0).sum()) * hull.voxel_mm ** 3
 
 
+def _rejoined(joined: int) -> str:
+    """The summary's words for :func:`recon.carving.rejoin_cut_off`'s count (empty for none)."""
+    return "" if not joined else (f" ({joined} part(s) the split cut off the body joined to it again, where the "
+                                  f"hull before the split held the gap)")
+
+
 def join_pieces(hull, floating: list[float], carve_at, k0: int, k_max: int) -> tuple[object, list[float], str | None]:
     """The hull in one piece where tolerating a few more views' background makes it one: ``(hull, floating, note)``.
 
@@ -120,7 +126,7 @@ def join_pieces(hull, floating: list[float], carve_at, k0: int, k_max: int) -> t
 
 def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progress, ws, intr=None) -> HullStage:
     """Silhouettes and hull in a working volume grown until the object fits (or the view ends)."""
-    from recon.carving import drop_floating_bodies
+    from recon.carving import drop_floating_bodies, rejoin_cut_off
 
     from .volume import (
         MIN_TOUCH_VIEWS,
@@ -223,12 +229,14 @@ def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progres
                                                 f"was {grows:.2f}x the one without them and {100 * paper:.0f} % of "
                                                 "what the split gives back the paper") + ")")
                 if choice is not None:
+                    unsplit = hull
                     sil, hull, pruned = tried[choice]
+                    hull, joined = rejoin_cut_off(hull, unsplit)
                     doubtful_wall.append(f"WARNING: {len(pruned)} view(s) lost the doubtful pixels that ran to the "
                                          f"working volume's outline (a wall of the object's colour), {how}, and the "
-                                         f"hull {'now fits' if _fits(hull) else 'still reaches it'}; parts of the "
-                                         f"object with the wall's colour may be missing (a dark or coloured backdrop "
-                                         f"avoids this)")
+                                         f"hull {'now fits' if _fits(hull) else 'still reaches it'}"
+                                         f"{_rejoined(joined)}; parts of the object with the wall's colour may be "
+                                         f"missing (a dark or coloured backdrop avoids this)")
                 progress.note(f"working volume: {'; '.join(doubtful_wall)}")
                 why = []
         if not why:

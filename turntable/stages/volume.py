@@ -151,7 +151,10 @@ def doubt_off_the_outline(masks: np.ndarray, unknown: np.ndarray, K: np.ndarray,
     piece's pixels on the outline gives the object the part it reaches
     before crossing an edge (the neck through which the wall joined) and
     drops only the wall's side, except where most views that split the
-    pixel give it to the object. ``whole=True`` (or no images) drops every
+    pixel give it to the object. Where the room is plain, the object's flood
+    also starts from the piece's pixels off the table top in a colour the
+    room never shows (:func:`recon.silhouettes.room_colour_set`): a figure's
+    lit head, joined to a grey wall through its shaded side. ``whole=True`` (or no images) drops every
     such piece whole: the fallback where the split still leaves the hull at
     the outline (no edge between the object and the wall), at the price of
     the object's parts inside the piece. A dropped pixel that would leave a
@@ -161,8 +164,9 @@ def doubt_off_the_outline(masks: np.ndarray, unknown: np.ndarray, K: np.ndarray,
 
     Returns ``(unknown, views)``: the pruned unknown pixels and the views that lost any.
     """
-    from recon.silhouette_doubt import doubt_pinholes
-    from recon.silhouettes import carved_alone, cylinder_region
+    from recon.silhouette_doubt import doubt_pinholes, in_set
+    from recon.silhouette_plates import PLATE_BORDER_MM
+    from recon.silhouettes import carved_alone, cylinder_region, plain_room, room_colour_set
 
     masks, unknown = np.asarray(masks, bool), np.asarray(unknown, bool)
     V, H, W = masks.shape
@@ -170,6 +174,16 @@ def doubt_off_the_outline(masks: np.ndarray, unknown: np.ndarray, K: np.ndarray,
     inner = np.zeros((H, W), bool)
     inner[_BAND_PX:H - _BAND_PX, _BAND_PX:W - _BAND_PX] = True
     split = images_rgb is not None and not whole
+    regions = [cylinder_region(K, t, (W, H), vol.radius_mm, vol.height_mm) for t in T_cam_table]
+    room_colours = None
+    if split and images_rgb is not None:
+        # the room's colours (as the silhouettes saw them): a pixel of a piece in front of the room with none of
+        # them is the object's, whatever its flood meets first (a white figure's lit head on a grey wall, joined
+        # to the wall through its shaded side, went with the wall in 29 views of 36)
+        room_colours = room_colour_set(np.asarray(images_rgb), K, T_cam_table, vol.radius_mm,
+                                       np.any(regions, axis=0))
+        if not plain_room(room_colours):
+            room_colours = None
     drop = np.zeros_like(unknown)
     in_piece = np.zeros((H, W), np.int32) if split else None
     kept = np.zeros((H, W), np.int32) if split else None
@@ -177,7 +191,7 @@ def doubt_off_the_outline(masks: np.ndarray, unknown: np.ndarray, K: np.ndarray,
         doubt = unknown[i] & ~masks[i]
         if not doubt.any():
             continue
-        region = cylinder_region(K, T_cam_table[i], (W, H), vol.radius_mm, vol.height_mm).astype(np.uint8)
+        region = regions[i].astype(np.uint8)
         band = (region > 0) & (cv2.erode(region, kernel, iterations=_BAND_PX) == 0) & inner
         n, lab = cv2.connectedComponents(doubt.astype(np.uint8), connectivity=8)
         hit = np.unique(lab[band & doubt])
@@ -185,7 +199,13 @@ def doubt_off_the_outline(masks: np.ndarray, unknown: np.ndarray, K: np.ndarray,
         if not len(hit):
             continue
         pieces = np.isin(lab, hit)
-        drop[i] = _wall_side(images_rgb[i], masks[i], pieces, band) if split and masks[i].any() else pieces
+        seeds = None
+        if room_colours is not None and images_rgb is not None:
+            # off the table top (the paper is not the room's) and blobs, not a pixel of noise
+            off_disc = ~cylinder_region(K, T_cam_table[i], (W, H), vol.radius_mm + PLATE_BORDER_MM, 0.0)
+            unlike = (pieces & off_disc & ~in_set(np.asarray(images_rgb[i]), room_colours)).astype(np.uint8)
+            seeds = cv2.morphologyEx(unlike, cv2.MORPH_OPEN, kernel) > 0
+        drop[i] = _wall_side(images_rgb[i], masks[i], pieces, band, seeds) if split and masks[i].any() else pieces
         if split:
             in_piece += pieces
             kept += pieces & ~drop[i]
@@ -222,9 +242,11 @@ def given_paper_share(given: np.ndarray, images_rgb, K: np.ndarray, T_cam_table:
     return float(np.count_nonzero(given & paper)) / n
 
 
-def _wall_side(img: np.ndarray, mask: np.ndarray, pieces: np.ndarray, band: np.ndarray) -> np.ndarray:
+def _wall_side(img: np.ndarray, mask: np.ndarray, pieces: np.ndarray, band: np.ndarray,
+               seeds: np.ndarray | None = None) -> np.ndarray:
     """The pixels of ``pieces`` that a watershed of the image's colour gradient floods from the outline ``band``
-    before the mask's flood reaches them (on the bounding box of the pieces and the mask)."""
+    before the mask's flood (and that of the object's ``seeds`` in the pieces) reaches them (on the bounding box
+    of the pieces and the mask)."""
     from skimage.segmentation import watershed
 
     from recon.silhouette_doubt import colour_gradient
@@ -239,6 +261,8 @@ def _wall_side(img: np.ndarray, mask: np.ndarray, pieces: np.ndarray, band: np.n
     grad = colour_gradient(img[box], sigma=_SPLIT_SIGMA_PX)
     markers = np.zeros(grad.shape, np.int32)
     markers[mask[box]] = 1
+    if seeds is not None:
+        markers[seeds[box] & pieces[box]] = 1
     markers[pieces[box] & band[box]] = 2
     flooded = watershed(grad, markers, mask=(pieces | mask)[box])
     wall = np.zeros_like(pieces)
