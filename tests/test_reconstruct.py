@@ -177,6 +177,13 @@ def _known_cameras_args(scene, out, *extra) -> list[str]:
             "--no-fusion", "--quiet", *extra]
 
 
+def _automatic_silhouettes_args(scene, out) -> list[str]:
+    """:func:`_known_cameras_args` without ``--masks``: the silhouettes are estimated (the target's radii given)."""
+    args = _known_cameras_args(scene, out, "--r-outer", "80", "--r-inner", "50", "--stroke", "3")
+    i = args.index("--masks")
+    return args[:i] + args[i + 2:]
+
+
 @pytest.fixture(scope="module")
 def gt_radius_mm(scene) -> float:
     v = trimesh.load(scene / "object_gt.ply").vertices
@@ -358,9 +365,7 @@ def test_doubtful_pixels_reaching_the_wall_do_not_grow_the_volume(scene, tmp_pat
 
     monkeypatch.setattr(sil, "estimate_silhouettes", all_doubtful)
     out = tmp_path / "scan"
-    args = _known_cameras_args(scene, out, "--r-outer", "80", "--r-inner", "50", "--stroke", "3")
-    args.remove("--masks")
-    args.remove(str(scene / "masks"))
+    args = _automatic_silhouettes_args(scene, out)
     assert main(args) in (0, 3)
     summary = json.loads((out / "summary.json").read_text())
     vol = summary["working_volume"]
@@ -374,6 +379,38 @@ def test_doubtful_pixels_reaching_the_wall_do_not_grow_the_volume(scene, tmp_pat
     assert main(_known_cameras_args(scene, ref, "--max-rejections", "1")) == 0
     ref_cm3 = json.loads((ref / "summary.json").read_text())["mesh"]["volume_cm3"]
     assert summary["mesh"]["volume_cm3"] < 1.5 * ref_cm3, (summary["mesh"]["volume_cm3"], ref_cm3)
+
+
+def test_doubt_running_to_the_outline_in_some_views_goes_though_the_hull_fits(scene, tmp_path, monkeypatch):
+    # a third of the views' doubt runs from the object's shoulder out past the side of the volume's image (a wall
+    # of its grey); the other views carve that space, so the hull fits, but such views could hold a fin the others
+    # see edge-on: that doubt is split off as well, noted without a WARNING, and the object is untouched
+    import recon.silhouettes as sil
+
+    real = sil.estimate_silhouettes
+
+    def wall_in_some(*a, **k):
+        res = real(*a, **k)
+        unknown = res.unknown.copy()
+        for i in range(0, len(unknown), 3):
+            ys, xs = np.nonzero(res.masks[i])
+            unknown[i, ys.min():ys.min() + 15, :xs.min() + 1] = True
+        return type(res)(**{**res.__dict__, "unknown": unknown})
+
+    monkeypatch.setattr(sil, "estimate_silhouettes", wall_in_some)
+    out = tmp_path / "scan"
+    args = _automatic_silhouettes_args(scene, out)
+    assert main(args) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    notes = summary["working_volume"]["notes"]
+    assert any("lost the doubtful pixels" in n and "split from the object" in n for n in notes), notes
+    assert not any("WARNING" in n for n in notes) and not summary["working_volume"]["grown"], notes
+    monkeypatch.setattr(sil, "estimate_silhouettes", real)
+    ref = tmp_path / "ref"
+    args[args.index(str(out))] = str(ref)
+    assert main(args) == 0
+    ref_cm3 = json.loads((ref / "summary.json").read_text())["mesh"]["volume_cm3"]
+    assert abs(summary["mesh"]["volume_cm3"] / ref_cm3 - 1.0) < 0.03, (summary["mesh"]["volume_cm3"], ref_cm3)
 
 
 def test_doubt_off_the_outline_drops_only_the_pieces_that_reach_it(scene):

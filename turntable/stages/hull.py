@@ -239,6 +239,23 @@ def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progres
                                          f"missing (a dark or coloured backdrop avoids this)")
                 progress.note(f"working volume: {'; '.join(doubtful_wall)}")
                 why = []
+            elif automatic:
+                # the hull fits, yet views whose doubt floods the wall up to the outline may hold a fin of it
+                # that the views seeing it edge-on cannot carve (a cream figure on a light wall: a sheet from
+                # its staff to its arm at the height of its head, 1.6 % of the diagonal): the same split
+                unknown, pruned = doubt_off_the_outline(sil.masks[keep], sil.unknown[keep], K, Ts[keep], vol,
+                                                        [images_rgb[k] for k in keep])
+                if pruned:
+                    cut = replace(sil, unknown=sil.unknown.copy())
+                    cut.unknown[keep] = unknown
+                    h_cut = carve(cut, keep, stage_key(key, "doubt off the outline", False), vol)
+                    h_cut, joined = rejoin_cut_off(h_cut, hull)
+                    if _fits(h_cut) and _bodies(h_cut) <= _bodies(hull):
+                        sil, hull = cut, h_cut
+                        doubtful_wall.append(f"{len(pruned)} view(s) lost the doubtful pixels that ran to the "
+                                             f"working volume's outline (a wall of the object's colour), split "
+                                             f"from the object along the image's edges{_rejoined(joined)}")
+                        progress.note(f"working volume: {doubtful_wall[-1]}")
         if not why:
             break
         bigger = vol.grown(*touch)
