@@ -916,6 +916,31 @@ def test_untrust_enclosed_drops_plain_islands_only():
     assert out[outside].all()  # the paper around keeps its trust
 
 
+def test_untrust_enclosed_takes_pale_shading_for_no_ink():
+    """A plinth top seen from 45 deg: the island's plate has texture at its rim and round the feet (shading
+    ramps, a few tens of grey levels under the paper's), over more than a tenth of it. That is no printed
+    ink: the island loses its trust. The same share of black ink keeps it (paper seen through a gap)."""
+    from recon.silhouette_plates import ISLAND_INK_SHARE, plate_ink, untrust_enclosed
+
+    n = 120
+    rng = np.random.default_rng(5)
+    plate = np.clip(np.full((n, n, 3), 225.0) + rng.normal(0.0, 1.0, (n, n, 3)), 0, 255).astype(np.uint8)
+    trust = np.ones((n, n), np.uint8)
+    trust[20:50, 20:60] = 0
+    trust[20:50, 70:110] = 0
+    pale = (slice(26, 44), slice(26, 54))
+    inked = (slice(26, 44), slice(76, 104))
+    trust[pale] = 1
+    trust[inked] = 1
+    plate[26:44, 26:54:4] = 185  # shading ramps: pale stripes
+    plate[26:44, 76:104:4] = 20  # printed marks, as many
+    tex = plate_ink(plate, 6.0)
+    assert tex[pale].mean() > ISLAND_INK_SHARE and tex[inked].mean() > ISLAND_INK_SHARE  # both textured
+    out = untrust_enclosed(trust, plate, tau=6.0)
+    assert not out[pale].any()
+    assert out[inked].all()
+
+
 def test_ink_is_reproduced_only_with_its_contrast():
     """The table plate's ink (a black ring's edge on white paper) seen in the photo is sure background; the
     same edge drawn at a tenth of its contrast (a white object's faint shading in front of it, correlated
