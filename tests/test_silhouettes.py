@@ -467,6 +467,34 @@ def test_doubt_joined_keeps_a_shaded_side_and_stops_at_the_wall():
     assert not (unknown & mask).any()
 
 
+def test_doubt_joined_does_not_step_from_a_fat_mask_into_a_doubtful_stretch_of_another_colour():
+    """A mask one pixel too fat (it took a pixel of the background's colour past its outline) ends
+    next to a smooth doubtful stretch of another colour: the dark underside of a vase against the paper in its
+    shadow, the wood behind a neck. The mask's own colour next to it is not that stretch's (an edge lies
+    between them): on the paper the stretch is not joined; a shaded side continuing the mask's colour still is.
+    Off the paper (a wall) the rule is not applied: the wall's split takes a flood off whole there."""
+    from recon.silhouette_doubt import doubt_joined
+
+    h, w = 40, 90
+    img = np.full((h, w, 3), 200, np.uint8)  # the paper in the shadow, plain
+    img[:, :30] = 110  # the object's dark underside, in the mask
+    img[:, 50:60] = 110  # another part of it, in the mask ...
+    img[:, 60:] = np.linspace(110, 125, 30)[None, :, None].astype(np.uint8)  # ... and its shaded side, smooth
+    rng = np.random.default_rng(1)
+    img = np.clip(img + rng.normal(0, 1.0, img.shape), 0, 255).astype(np.uint8)
+    mask = np.zeros((h, w), bool)
+    mask[:, :31] = True  # a column of the paper's colour in it
+    mask[:, 50:61] = True
+    doubtful = ~mask
+    paper = np.zeros((h, w), bool)
+    on_plate = np.ones((h, w), bool)
+    unknown = doubt_joined(img, mask, doubtful, paper, tau=6.0, on_plate=on_plate)
+    assert unknown[:, 34:46].sum() == 0  # the stretch of the paper's colour
+    assert unknown[:, 63:].mean() > 0.95  # the shaded side
+    wall = doubt_joined(img, mask, doubtful, paper, tau=6.0, on_plate=~on_plate)
+    assert wall[:, 34:46].all() and wall[:, 63:].mean() > 0.95
+
+
 def _shaded_disc(h=80, w=100, r=25.0, background=60.0, limb=95.0, seed=0):
     """A white ball on a plain backdrop with exact pixel coverage (16 x 16 sub-samples a pixel), shaded
     as a sphere lit from the front left, down to ``limb`` on its dark side. Returns (img, coverage)."""
