@@ -526,17 +526,11 @@ def drop_floating_bodies(hull: VoxelHull, ground_tol_mm: float = 3.0,
     ``keep_fraction`` of the largest one's volume stay (two objects, one on a
     stand the silhouettes lost). Dropped voxels are set just outside.
     """
-    from scipy import ndimage
-
-    inside = hull.values > 0
-    lab, n = ndimage.label(inside, structure=np.ones((3, 3, 3), bool))
+    lab, n, vol, above = _body_labels(hull.values > 0, ground_tol_mm, hull.voxel_mm)
     if n <= 1:
         return hull, []
     idx = np.arange(1, n + 1)
-    vol = np.bincount(lab.ravel(), minlength=n + 1)[1:]
-    low = np.array([box[1].start for box in ndimage.find_objects(lab)])  # each body's lowest layer (axis 1 is up)
-    tol = max(ground_tol_mm / hull.voxel_mm, 3.0)
-    floating = (low > low.min() + tol) & (vol < keep_fraction * vol.max())
+    floating = above & (vol < keep_fraction * vol.max())
     if not floating.any():
         return hull, []
     drop = np.isin(lab, idx[floating])
@@ -547,15 +541,15 @@ def drop_floating_bodies(hull: VoxelHull, ground_tol_mm: float = 3.0,
 
 
 def _body_labels(inside: np.ndarray, ground_tol_mm: float, voxel_mm: float):
-    """26-connected bodies of ``inside``: ``(labels, n, volumes (n,), floating (n,) bool)``, floating as
-    :func:`drop_floating_bodies` counts it (lowest layer more than the tolerance above the lowest body's)."""
+    """26-connected bodies of ``inside``: ``(labels, n, volumes (n,), above (n,) bool)``, ``above``: the body's
+    lowest layer is more than ``ground_tol_mm`` (at least 3 voxels) above the lowest body's."""
     from scipy import ndimage
 
     lab, n = ndimage.label(inside, structure=np.ones((3, 3, 3), bool))
     if n == 0:
         return lab, 0, np.zeros(0, np.int64), np.zeros(0, bool)
     vol = np.bincount(lab.ravel(), minlength=n + 1)[1:]
-    low = np.array([box[1].start for box in ndimage.find_objects(lab)])
+    low = np.array([box[1].start for box in ndimage.find_objects(lab)])  # each body's lowest layer (axis 1 is up)
     return lab, n, vol, low > low.min() + max(ground_tol_mm / voxel_mm, 3.0)
 
 

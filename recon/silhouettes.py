@@ -931,7 +931,7 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
     for i in used:
         o = outs[i]
         unknown[(i, *box)] = doubt_joined(crops[i], o.mask, doubtful[i], o.paper, tau, o.background, o.usable,
-                                                  o.on_plate)
+                                          o.on_plate)
         across[(i, *box)] = doubt_across(o.mask, unknown[(i, *box)], doubtful[i], o.unvouched, gap)
         across_far[(i, *box)] = doubt_across(o.mask, unknown[(i, *box)], doubtful[i], o.unvouched, far)
         if across_wide is not None:
