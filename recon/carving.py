@@ -579,24 +579,28 @@ def rejoin_cut_off(hull: VoxelHull, before: VoxelHull, gap_mm: float = 4.0, min_
         return hull, 0
     r = gap_mm / hull.voxel_mm
     d_main = ndimage.distance_transform_edt(~main)
-    idx = np.indices(inside.shape).reshape(3, -1).T
-    coords = (hull.centres_table(idx) - before.origin_table) / before.voxel_mm
-    held = ndimage.map_coordinates(np.asarray(before.values, np.float32), coords.T, order=1, mode="constant",
-                                   cval=-1.0).reshape(inside.shape)
+    before_vals = np.asarray(before.values, np.float32)
     vals = hull.values.copy()
     joined = 0
     for b in big:
         part = lab == b + 1
         if d_main[part].min() > r + 1.0:
             continue
-        near = (ndimage.distance_transform_edt(~part) <= r) & (d_main <= r) & (held > 0) & ~inside
+        near = (ndimage.distance_transform_edt(~part) <= r) & (d_main <= r) & ~inside
+        if not near.any():
+            continue
+        # ``before`` sampled only there (every voxel of a 256^3 grid would take ~1 GB of coordinates)
+        ijk = np.argwhere(near)
+        coords = (hull.centres_table(ijk) - before.origin_table) / before.voxel_mm
+        held = ndimage.map_coordinates(before_vals, coords.T, order=1, mode="constant", cval=-1.0)
+        near[tuple(ijk[held <= 0].T)] = False
         if not near.any():
             continue
         trial = inside | near
         tl, _ = ndimage.label(trial, structure=np.ones((3, 3, 3), bool))
         if tl[part].max() != tl[main].max():  # each is one body of ``trial``: the same one, or still apart
             continue
-        vals[near] = held[near]
+        vals[near] = held[held > 0]
         inside = vals > 0
         joined += 1
     if not joined:
