@@ -164,6 +164,15 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
     names = [names[i] for i in keep]
     images_rgb = [images_rgb[i] for i in keep]
     masks, Ts = carved.silhouettes.masks[keep], Ts[keep]
+    from recon.faces import carve_above_faces
+
+    with progress.stage("flat tops"):  # the roof no silhouette carves over a plinth's or a box's top
+        hull, roofs = carve_above_faces(hull, images_rgb, masks, K, Ts)
+    for face, mm3 in roofs:
+        note = (f"a flat top {face.height_mm:.1f} mm above the table ({face.area_mm2:.0f} mm²): the roof the "
+                f"silhouettes leave over it carved ({mm3 / 1000.0:.1f} cm³)")
+        progress.note(f"hull: {note}")
+        carved.report.setdefault("notes", []).append(note)
 
     from recon.meshing import clip_to_hull, mesh_from_hull
 

@@ -1,0 +1,341 @@
+"""Raised horizontal faces, found by a sweep of image edges over horizontal planes, and the roof over them.
+
+A flat top (a plinth's, a box's lid) is carved by no silhouette: cameras
+above the table see it only from the side, and the hull keeps a roof over
+it as high as the top is wide times the tangent of the elevation (13 mm
+over a 57 mm box seen from 30 deg). Stereo finds nothing on a plain white
+top. Its outline does show: the step of shading between the top and its
+sides. Warped onto the horizontal plane at the top's height, every view's
+edges fall on the same outline; at any other height they scatter (each
+view's parallax points another way). So each view's edges (Canny, inside
+its silhouette) are rectified onto planes ``y = h`` every ``STEP_MM``, and
+a height where a large share of the views put an edge on the same texels,
+sharply more than 2 mm above and below, is a face's. Its faces are the
+regions the outline encloses inside the hull's section (the section closes
+the outline where a white top's edge against white paper shows no step)
+whose colour the views agree on (a leg standing on the top breaks both),
+if they are flat:
+of one colour all over (a flat top's normal turns with the table about
+itself, so under a light fixed to the camera every view sees it equally
+lit; a dome's shading runs across it) and outlining nothing inside
+themselves higher up (a lid's knob, a dome's contour), and tops: the hull
+over them no higher than a roof over a top that wide can be (a torso's
+section, outlined at one height, has the torso standing on it). A lid's
+rim is a horizontal edge too, and a plain white dome agrees with every
+vote below.
+
+A hull voxel above a face is free where the views whose ray through it
+lands on the face (eroded by ``ERODE_MM``) see there the face's colour (its
+median over the views): at least ``MIN_VOTES`` views and ``VOTE_SHARE`` of
+those eligible. A view whose pixel shows something in front of the face
+(a leg, a torso) shows that thing's colour and does not vote. Nothing is
+carved that leaves a pixel of a view's silhouette without a voxel of the
+hull behind it (the guard: a roof's pixels are covered by the face below
+it); a face whose carving would is left alone.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from calib.camera import camera_centre_table
+
+from .types import VoxelHull
+
+__all__ = ["Face", "find_faces", "carve_above_faces"]
+
+STEP_MM = 0.5  # the sweep's step in height
+PX_PER_MM = 3.0  # the planes' raster ...
+MAX_TEXELS = 250_000  # ... coarser where the object's footprint would need more texels
+MAX_HEIGHTS = 400  # the sweep's step grows where more heights would be needed
+MIN_HEIGHT_MM = 2.0  # faces start this far above the table (the table's own print is at 0)
+EDGE_SHARE = 0.7  # a texel is on an outline where this share of the views that see it show an edge there
+PEAK = 2.5  # ... a height is a face's where it has this many times the outline texels of 2 mm above and below
+PEAK_OFFSET_MM = 2.0
+MIN_OUTLINE_MM = 20.0  # ... and at least this long an outline
+MIN_FACE_MM2 = 30.0  # a face's least area
+INNER_MM = 1.5  # a face is flat where, this far inside its outline, ...
+RISE_MM = 10.0  # ... the heights up to this far above it ...
+RISE_SHARE = 0.02  # ... put at most this share of its texels on an outline
+ROOF_SLACK_MM = 2.0  # the hull over a top rises at most its width times the steepest view's tangent, and this
+MIN_AGREE = 0.5  # a face's texels are those where this share of the views agree with their median colour
+AGREE_DN = 10.0  # a view agrees with a colour within this (8-bit, each channel)
+FLAT_SPREAD_DN = 8.0  # a face's colour (the views' median) spreads over at most this (5th to 95th percentile)
+ERODE_MM = 1.0  # votes count only for rays landing this far inside the face
+MARGIN_MM = 1.0  # voxels this close above the face are kept
+MIN_VOTES = 3
+VOTE_SHARE = 0.4
+GUARD_PX = 0.02  # a face's carving may uncover at most this share of any view's silhouette (a shadow left in it)
+
+
+@dataclass(frozen=True)
+class Face:
+    """A horizontal face ``height_mm`` above the table: ``region`` on the raster (i: z, j: x) from ``origin_xz``."""
+
+    height_mm: float
+    region: np.ndarray  # (nz, nx) bool
+    colour: np.ndarray  # (nz, nx, 3) float32, the views' median colour on the face
+    origin_xz: tuple[float, float]
+    px_per_mm: float
+
+    @property
+    def area_mm2(self) -> float:
+        return float(self.region.sum()) / self.px_per_mm ** 2
+
+
+def _plane_map(K, T, h, x0, z0, px) -> np.ndarray:
+    """3x3 map from raster (j, i, 1) on the plane y = h to pixels."""
+    R, t = T[:3, :3], T[:3, 3]
+    H = np.asarray(K, float) @ np.column_stack([R[:, 0], R[:, 2], t + h * R[:, 1]])
+    return H @ np.array([[1.0 / px, 0.0, x0], [0.0, 1.0 / px, z0], [0.0, 0.0, 1.0]])
+
+
+def _warp(img, M, size, nearest=False) -> np.ndarray:
+    flags = (cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR) | cv2.WARP_INVERSE_MAP
+    return cv2.warpPerspective(img, M, size, flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def _edges(img_rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    grey = cv2.GaussianBlur(cv2.cvtColor(img_rgb, cv2.COLOR_RGB2GRAY), (0, 0), 1.0)
+    e = cv2.Canny(grey, 8, 16)
+    near = cv2.dilate(mask.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+    return (cv2.dilate(e, np.ones((3, 3), np.uint8)) > 0) & near
+
+
+def _sections(hull: VoxelHull, heights, x0, z0, shape, px) -> list[np.ndarray]:
+    """The hull's horizontal section at each height on the raster."""
+    inside = np.asarray(hull.values) > 0
+    o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
+    nz, nx = shape
+    ii, jj = np.mgrid[0:nz, 0:nx]
+    gx = np.clip(np.rint((x0 + jj / px - o[0]) / v).astype(int), 0, inside.shape[0] - 1)
+    gz = np.clip(np.rint((z0 + ii / px - o[2]) / v).astype(int), 0, inside.shape[2] - 1)
+    out = []
+    for h in heights:
+        iy = int(round((h - o[1]) / v))
+        out.append(inside[gx, iy, gz] if 0 <= iy < inside.shape[1] else np.zeros(shape, bool))
+    return out
+
+
+def find_faces(images_rgb, masks, K, Ts, hull: VoxelHull) -> list[Face]:
+    """The raised horizontal faces the views' edges outline (see the module's docstring)."""
+    inside = np.asarray(hull.values) > 0
+    if not inside.any():
+        return []
+    o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
+    idx = np.argwhere(inside)
+    lo, hi = o + idx.min(0) * v, o + idx.max(0) * v
+    x0, z0 = lo[0] - 3.0, lo[2] - 3.0
+    width, depth = hi[0] - lo[0] + 6.0, hi[2] - lo[2] + 6.0
+    px = min(PX_PER_MM, math.sqrt(MAX_TEXELS / (width * depth)))  # a large object: a coarser raster
+    shape = (int(math.ceil(depth * px)) + 1, int(math.ceil(width * px)) + 1)
+    size = (shape[1], shape[0])
+    step = max(STEP_MM, (hi[1] + PEAK_OFFSET_MM) / MAX_HEIGHTS)
+    heights = np.arange(MIN_HEIGHT_MM - PEAK_OFFSET_MM, hi[1] + PEAK_OFFSET_MM, step)
+    edges = [_edges(im, m).astype(np.uint8) for im, m in zip(images_rgb, masks, strict=True)]
+    sections = _sections(hull, heights, x0, z0, shape, px)
+    near = np.ones((int(4 * px) + 1,) * 2, np.uint8)  # 2 mm round the hull's section
+
+    def outline(k: int) -> np.ndarray:
+        votes = np.zeros(shape, np.float32)
+        for e, T in zip(edges, Ts, strict=True):
+            votes += _warp(e, _plane_map(K, T, float(heights[k]), x0, z0, px), size, nearest=True)
+        # the share of the views with an edge there (the hull is in every view: its working volume is)
+        return (votes >= EDGE_SHARE * len(Ts)) & (cv2.dilate(sections[k].astype(np.uint8), near) > 0)
+
+    score = np.array([outline(k).sum() for k in range(len(heights))])
+    off = max(int(round(PEAK_OFFSET_MM / step)), 1)
+    faces: list[Face] = []
+    for k in range(off, len(heights) - off):
+        h = float(heights[k])
+        if h < MIN_HEIGHT_MM or score[k] < MIN_OUTLINE_MM * px:
+            continue
+        if score[k] < score[max(k - 2, 0):k + 3].max() or score[k] < PEAK * max(score[k - off], score[k + off]):
+            continue
+        for face in _faces_at(h, outline(k), sections[k], images_rgb, K, Ts, x0, z0, px, size):
+            # flat: nothing inside it outlines itself higher up (a lid's dome, a knob: their contours do)
+            r = max(int(round(INNER_MM * px)), 1)
+            inner = cv2.erode(face.region.astype(np.uint8), np.ones((2 * r + 1,) * 2, np.uint8)) > 0
+            above = range(k + max(int(round(1.0 / step)), 1), min(k + int(round(RISE_MM / step)) + 1, len(heights)))
+            if not inner.any() or any((outline(j) & inner).sum() > RISE_SHARE * inner.sum() for j in above):
+                continue
+            if _stands_high(face, hull, Ts):
+                continue
+            faces.append(face)
+    return faces
+
+
+def _stands_high(face: Face, hull: VoxelHull, Ts) -> bool:
+    """Whether the hull over most of the face rises higher than any roof over a top of its size could.
+
+    A flat top's roof is at most as high as the top is wide times the tangent of the steepest view onto
+    it; a region found inside a body (a torso's section, whose contour happened to be outlined at one
+    height) has the body standing on it.
+    """
+    inside = np.asarray(hull.values) > 0
+    o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
+    ii, jj = np.nonzero(face.region)
+    x = face.origin_xz[0] + jj / face.px_per_mm
+    z = face.origin_xz[1] + ii / face.px_per_mm
+    gx = np.clip(np.rint((x - o[0]) / v).astype(int), 0, inside.shape[0] - 1)
+    gz = np.clip(np.rint((z - o[2]) / v).astype(int), 0, inside.shape[2] - 1)
+    iy0 = max(int(np.ceil((face.height_mm - o[1]) / v)), 0)
+    if iy0 >= inside.shape[1]:
+        return False
+    cols = inside[gx, iy0:, gz]  # (N, ny) the hull up each column from the face
+    run = np.where(cols.all(axis=1), cols.shape[1], np.argmin(cols, axis=1)) * v
+    centre = np.array([x.mean(), face.height_mm, z.mean()])
+    tan_e = max(float((c[1] - centre[1]) / max(np.hypot(c[0] - centre[0], c[2] - centre[2]), 1e-6))
+                for c in (camera_centre_table(T) for T in Ts))
+    width = float(np.hypot(x.max() - x.min(), z.max() - z.min()))
+    return float(np.median(run)) > width * max(tan_e, 0.0) + ROOF_SLACK_MM
+
+
+
+
+def _faces_at(h, outline, section, images_rgb, K, Ts, x0, z0, px, size) -> list[Face]:
+    """The regions the outline at height ``h`` encloses in the hull's section, where the views agree on a colour.
+
+    Where the outline has a gap (a white top's edge against white paper shows no step) the hull's section
+    closes it: no face reaches out of the hull.
+    """
+    wall = cv2.dilate(outline.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    wall |= ~section
+    n, lab = cv2.connectedComponents((~wall).astype(np.uint8), connectivity=4)
+    border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
+    rect = np.stack([_warp(im, _plane_map(K, T, h, x0, z0, px), size) for im, T in zip(images_rgb, Ts, strict=True)])
+    ones = np.ones(images_rgb[0].shape[:2], np.uint8)
+    seen = np.stack([_warp(ones, _plane_map(K, T, h, x0, z0, px), size, nearest=True) > 0 for T in Ts])
+    rectf = rect.astype(np.float32)
+    rectf[~seen] = np.nan
+    med = np.nanmedian(rectf, axis=0)
+    agree = np.nansum(np.abs(rectf - med).max(axis=-1) < AGREE_DN, axis=0) / np.maximum(seen.sum(0), 1)
+    out = []
+    for c in range(1, n):
+        if c in border:
+            continue
+        region = lab == c
+        # the texels the views agree on (a leg's foot, the shadow a leg casts on the top are not)
+        region &= agree >= MIN_AGREE
+        region = cv2.morphologyEx(region.astype(np.uint8), cv2.MORPH_OPEN, np.ones((5, 5), np.uint8)) > 0
+        if region.sum() / px ** 2 < MIN_FACE_MM2:
+            continue
+        # one colour all over: a flat top's normal turns with the table about itself, so under a light
+        # fixed to the camera every view sees it equally lit; a dome's shading runs across it
+        grey = np.nan_to_num(med).mean(axis=-1)[region]
+        lo, hi = np.percentile(grey, [5.0, 95.0])
+        if hi - lo > FLAT_SPREAD_DN:
+            continue
+        out.append(Face(h, region, np.nan_to_num(med).astype(np.float32), (x0, z0), px))
+    return out
+
+
+def _votes(face: Face, pts, images_rgb, K, Ts) -> tuple[np.ndarray, np.ndarray]:
+    """Per point (N, 3) above the face: the views whose ray through it lands on the face, and those that see it."""
+    px, (x0, z0) = face.px_per_mm, face.origin_xz
+    r = int(round(ERODE_MM * px))
+    region = cv2.erode(face.region.astype(np.uint8), np.ones((2 * r + 1,) * 2, np.uint8)) > 0 if r else face.region
+    nz, nx = region.shape
+    eligible = np.zeros(len(pts), np.int32)
+    votes = np.zeros(len(pts), np.int32)
+    for img, T in zip(images_rgb, Ts, strict=True):
+        c = camera_centre_table(T)
+        dy = pts[:, 1] - c[1]
+        ok = dy < -1e-6  # the camera is above the point
+        s = np.where(ok, (face.height_mm - c[1]) / np.where(ok, dy, -1.0), 0.0)
+        P = c + s[:, None] * (pts - c)
+        j = np.rint((P[:, 0] - x0) * px).astype(int)
+        i = np.rint((P[:, 2] - z0) * px).astype(int)
+        ok &= (i >= 0) & (j >= 0) & (i < nz) & (j < nx)
+        ok[ok] &= region[i[ok], j[ok]]
+        pc = pts[ok] @ T[:3, :3].T + T[:3, 3]
+        uv = pc[:, :2] / pc[:, 2:3] @ np.asarray(K, float)[:2, :2].T + np.asarray(K, float)[:2, 2]
+        u, w = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
+        H, W = img.shape[:2]
+        inb = (u >= 0) & (w >= 0) & (u < W) & (w < H)
+        sel = np.flatnonzero(ok)[inb]
+        eligible[sel] += 1
+        col = img[w[inb], u[inb]].astype(np.float32)
+        same = np.abs(col - face.colour[i[sel], j[sel]]).max(axis=1) < AGREE_DN
+        votes[sel[same]] += 1
+    return votes, eligible
+
+
+def _shell_points(inside: np.ndarray, hull: VoxelHull) -> np.ndarray:
+    """(N, 3) table mm: the centres of the voxels of ``inside`` on its surface."""
+    shell = inside & ~ndimage.binary_erosion(inside)
+    return np.asarray(hull.origin_table, float) + np.argwhere(shell) * float(hull.voxel_mm)
+
+
+def _coverage(pts: np.ndarray, K, T, shape) -> np.ndarray:
+    """(H, W) bool: the pixels the points (a hull's shell voxels) project to, 3 x 3 each."""
+    pc = pts @ T[:3, :3].T + T[:3, 3]
+    uv = pc[:, :2] / pc[:, 2:3] @ np.asarray(K, float)[:2, :2].T + np.asarray(K, float)[:2, 2]
+    u, w = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
+    H, W = shape
+    ok = (u >= 0) & (w >= 0) & (u < W) & (w < H)
+    cov = np.zeros(shape, np.uint8)
+    cov[w[ok], u[ok]] = 1
+    return cv2.dilate(cov, np.ones((3, 3), np.uint8)) > 0
+
+
+def carve_above_faces(hull: VoxelHull, images_rgb, masks, K, Ts) -> tuple[VoxelHull, list[tuple[Face, float]]]:
+    """The hull without the roof over its raised faces; and each face with the volume carved above it, mm^3."""
+    faces = find_faces(images_rgb, masks, K, Ts, hull)
+    if not faces:
+        return hull, []
+    vals = np.asarray(hull.values, np.float32).copy()
+    o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
+    shape = masks[0].shape
+    done = []
+    for face in faces:
+        inside = vals > 0
+        idx = np.argwhere(inside)
+        pts = o + idx * v
+        px, (x0, z0) = face.px_per_mm, face.origin_xz
+        j = np.rint((pts[:, 0] - x0) * px).astype(int)
+        i = np.rint((pts[:, 2] - z0) * px).astype(int)
+        nz, nx = face.region.shape
+        col = (i >= 0) & (j >= 0) & (i < nz) & (j < nx)
+        col[col] &= face.region[i[col], j[col]]
+        above = col & (pts[:, 1] > face.height_mm + MARGIN_MM)
+        if not above.any():
+            continue
+        votes, eligible = _votes(face, pts[above], images_rgb, K, Ts)
+        free = (votes >= MIN_VOTES) & (votes >= VOTE_SHARE * eligible)
+        if not free.any():
+            continue
+        carve = idx[above][free]
+        trial = inside.copy()
+        trial[tuple(carve.T)] = False
+        # no pocket inside: what the votes free must open to the outside
+        lab, _ = ndimage.label(~trial)
+        outside = np.unique(np.concatenate([lab[0].ravel(), lab[-1].ravel(), lab[:, 0].ravel(), lab[:, -1].ravel(),
+                                            lab[:, :, 0].ravel(), lab[:, :, -1].ravel()]))
+        pocket = ~np.isin(lab, outside[outside > 0]) & ~trial
+        trial |= pocket
+        carve = np.argwhere(inside & ~trial)
+        if not len(carve):
+            continue
+        before, after = _shell_points(inside, hull), _shell_points(trial, hull)
+        lost = max(float((m & _coverage(before, K, T, shape) & ~_coverage(after, K, T, shape)).sum())
+                   / max(float(m.sum()), 1.0) for m, T in zip(masks, Ts, strict=True))
+        if lost > GUARD_PX:
+            continue
+        # the face's plane is the surface: signed distance to it above the face (the margin kept too,
+        # in the columns carved above it), unchanged below
+        ci = tuple(carve.T)
+        vals[ci] = np.minimum(np.minimum(vals[ci], np.float32(face.height_mm) - (o[1] + carve[:, 1] * v)), -0.5 * v)
+        cols = np.unique(carve[:, [0, 2]], axis=0)
+        lo = int(np.floor((face.height_mm - o[1]) / v)) + 1
+        hi = int(np.ceil((face.height_mm + MARGIN_MM - o[1]) / v)) + 1
+        for iy in range(max(lo, 0), min(hi, vals.shape[1])):
+            band = vals[cols[:, 0], iy, cols[:, 1]]
+            vals[cols[:, 0], iy, cols[:, 1]] = np.minimum(band, np.float32(face.height_mm - (o[1] + iy * v)))
+        done.append((face, len(carve) * v ** 3))
+    return VoxelHull(values=vals, origin_table=hull.origin_table, voxel_mm=hull.voxel_mm, meta=dict(hull.meta)), done
