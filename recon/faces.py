@@ -43,7 +43,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from calib.camera import camera_centre_table
+from calib.camera import camera_centre_table, plane_homography, project_points
 
 from .types import VoxelHull
 
@@ -90,9 +90,10 @@ class Face:
 
 def _plane_map(K, T, h, x0, z0, px) -> np.ndarray:
     """3x3 map from raster (j, i, 1) on the plane y = h to pixels."""
-    R, t = T[:3, :3], T[:3, 3]
-    H = np.asarray(K, float) @ np.column_stack([R[:, 0], R[:, 2], t + h * R[:, 1]])
-    return H @ np.array([[1.0 / px, 0.0, x0], [0.0, 1.0 / px, z0], [0.0, 0.0, 1.0]])
+    on_plane = np.eye(4)
+    on_plane[1, 3] = h  # the table frame lifted to the plane: its points (X, 0, Z) are (X, h, Z)
+    return plane_homography(K, np.asarray(T, float) @ on_plane) @ np.array([[1.0 / px, 0.0, x0],
+                                                                          [0.0, 1.0 / px, z0], [0.0, 0.0, 1.0]])
 
 
 def _warp(img, M, size, nearest=False) -> np.ndarray:
@@ -253,8 +254,7 @@ def _votes(face: Face, pts, images_rgb, K, Ts) -> tuple[np.ndarray, np.ndarray]:
         i = np.rint((P[:, 2] - z0) * px).astype(int)
         ok &= (i >= 0) & (j >= 0) & (i < nz) & (j < nx)
         ok[ok] &= region[i[ok], j[ok]]
-        pc = pts[ok] @ T[:3, :3].T + T[:3, 3]
-        uv = pc[:, :2] / pc[:, 2:3] @ np.asarray(K, float)[:2, :2].T + np.asarray(K, float)[:2, 2]
+        uv = project_points(K, T, pts[ok])
         u, w = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
         H, W = img.shape[:2]
         inb = (u >= 0) & (w >= 0) & (u < W) & (w < H)
@@ -274,8 +274,7 @@ def _shell_points(inside: np.ndarray, hull: VoxelHull) -> np.ndarray:
 
 def _coverage(pts: np.ndarray, K, T, shape) -> np.ndarray:
     """(H, W) bool: the pixels the points (a hull's shell voxels) project to, 3 x 3 each."""
-    pc = pts @ T[:3, :3].T + T[:3, 3]
-    uv = pc[:, :2] / pc[:, 2:3] @ np.asarray(K, float)[:2, :2].T + np.asarray(K, float)[:2, 2]
+    uv = project_points(K, T, pts)
     u, w = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
     H, W = shape
     ok = (u >= 0) & (w >= 0) & (u < W) & (w < H)
