@@ -197,8 +197,6 @@ def _stands_high(face: Face, hull: VoxelHull, Ts) -> bool:
     return float(np.median(run)) > width * max(tan_e, 0.0) + ROOF_SLACK_MM
 
 
-
-
 def _faces_at(h, outline, section, images_rgb, K, Ts, x0, z0, px, size) -> list[Face]:
     """The regions the outline at height ``h`` encloses in the hull's section, where the views agree on a colour.
 
@@ -209,6 +207,9 @@ def _faces_at(h, outline, section, images_rgb, K, Ts, x0, z0, px, size) -> list[
     wall |= ~section
     n, lab = cv2.connectedComponents((~wall).astype(np.uint8), connectivity=4)
     border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
+    big = [c for c in range(1, n) if c not in border and (lab == c).sum() >= MIN_FACE_MM2 * px ** 2]
+    if not big:  # nothing enclosed that could be a face: no need to warp every view's colours
+        return []
     rect = np.stack([_warp(im, _plane_map(K, T, h, x0, z0, px), size) for im, T in zip(images_rgb, Ts, strict=True)])
     ones = np.ones(images_rgb[0].shape[:2], np.uint8)
     seen = np.stack([_warp(ones, _plane_map(K, T, h, x0, z0, px), size, nearest=True) > 0 for T in Ts])
@@ -217,9 +218,7 @@ def _faces_at(h, outline, section, images_rgb, K, Ts, x0, z0, px, size) -> list[
     med = np.nanmedian(rectf, axis=0)
     agree = np.nansum(np.abs(rectf - med).max(axis=-1) < AGREE_DN, axis=0) / np.maximum(seen.sum(0), 1)
     out = []
-    for c in range(1, n):
-        if c in border:
-            continue
+    for c in big:
         region = lab == c
         # the texels the views agree on (a leg's foot, the shadow a leg casts on the top are not)
         region &= agree >= MIN_AGREE
