@@ -52,16 +52,22 @@ def _sphere_hit(o, d, centre, radius):
     return t, (p - centre) / radius
 
 
-def _lid_hit(o, d):
-    """A round box: a cylinder (radius 25, 30 high) under a domed lid rising 8.8 mm over its rim."""
+def _cylinder_side_hit(o, d, radius, height):
+    """Distance along each ray to the side of the upright cylinder about the axis, from the table up to
+    ``height`` (inf where it misses), and the height where it is met."""
     a = d[:, 0] ** 2 + d[:, 2] ** 2
     b = 2 * (o[0] * d[:, 0] + o[2] * d[:, 2])
-    c = o[0] ** 2 + o[2] ** 2 - 25.0 ** 2
+    c = o[0] ** 2 + o[2] ** 2 - radius ** 2
     disc = b * b - 4 * a * c
     with np.errstate(invalid="ignore", divide="ignore"):
-        ts = (-b - np.sqrt(np.maximum(disc, 0.0))) / (2 * a)
-    ys = o[1] + ts * d[:, 1]
-    ts = np.where((disc >= 0) & (ys >= 0.0) & (ys <= 30.0), ts, np.inf)
+        t = (-b - np.sqrt(np.maximum(disc, 0.0))) / (2 * a)
+    y = o[1] + t * d[:, 1]
+    return np.where((disc >= 0) & (y >= 0.0) & (y <= height), t, np.inf), y
+
+
+def _lid_hit(o, d):
+    """A round box: a cylinder (radius 25, 30 high) under a domed lid rising 8.8 mm over its rim."""
+    ts, _ = _cylinder_side_hit(o, d, 25.0, 30.0)
     p = o + np.where(np.isfinite(ts), ts, 0.0)[:, None] * d
     n_side = p * np.array([1.0, 0.0, 1.0]) / 25.0
     centre = np.array([0.0, 30.0 - np.sqrt(40.0 ** 2 - 25.0 ** 2), 0.0])
@@ -74,15 +80,9 @@ def _lid_hit(o, d):
 
 def _column_hit(o, d):
     """A plain column (radius 20, 80 high) with a dark band painted round it from 28 to 30 mm."""
-    a = d[:, 0] ** 2 + d[:, 2] ** 2
-    b = 2 * (o[0] * d[:, 0] + o[2] * d[:, 2])
-    c = o[0] ** 2 + o[2] ** 2 - 20.0 ** 2
-    disc = b * b - 4 * a * c
+    t, y = _cylinder_side_hit(o, d, 20.0, 80.0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        t = (-b - np.sqrt(np.maximum(disc, 0.0))) / (2 * a)
         t_top = (80.0 - o[1]) / d[:, 1]
-    y = o[1] + t * d[:, 1]
-    t = np.where((disc >= 0) & (y >= 0.0) & (y <= 80.0), t, np.inf)
     p_top = o + np.where(np.isfinite(t_top), t_top, 0.0)[:, None] * d
     top = np.isinf(t) & (np.hypot(p_top[:, 0], p_top[:, 2]) <= 20.0) & (t_top > 0)
     t = np.where(top, t_top, t)
