@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calib.camera import circle_points_table, make_T, plane_homography, project_points
+from calib.camera import circle_points_table, look_at, make_T, plane_homography, project_points
 from calib.target import TargetSpec
 from turntable.pattern import render_target_image
 
@@ -64,6 +64,18 @@ def look_at_T(elevation_deg: float, azimuth_deg: float, distance_mm: float,
     Rz = np.array([[np.cos(r), -np.sin(r), 0], [np.sin(r), np.cos(r), 0], [0, 0, 1.0]])
     R_cam_table = Rz @ R_table_cam.T
     return make_T(R_cam_table, -R_cam_table @ C)
+
+
+def turntable_ring(n_views: int, look_y_mm: float, distance_mm: float = 450.0,
+                   elevation_deg: float = 30.0) -> np.ndarray:
+    """(n_views, 4, 4) ``T_cam_table`` of cameras evenly round the table's axis, ``distance_mm`` from the table
+    origin and ``elevation_deg`` above its plane, each looking at the point ``look_y_mm`` up the axis."""
+    e = np.radians(elevation_deg)
+    out = []
+    for th in np.linspace(0.0, 2.0 * np.pi, n_views, endpoint=False):
+        c = distance_mm * np.array([np.cos(th) * np.cos(e), np.sin(e), np.sin(th) * np.cos(e)])
+        out.append(look_at(c, np.array([0.0, look_y_mm, 0.0])))
+    return np.array(out)
 
 
 def paper_raster(spec: TargetSpec, px_per_mm: float, *, rings_mm=None,

@@ -7,8 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 from scipy import ndimage
+from synthetic_images import turntable_ring
 
-from calib.camera import look_at
 from recon.carving import carve_hull, silhouette_sdf_px
 from recon.types import VoxelHull
 
@@ -18,16 +18,8 @@ CENTRE_TABLE = np.array([4.0, 40.0, -3.0])
 RADIUS_MM = 35.0
 
 
-_look_at = look_at
-
-
-def _turntable_cameras(n_views: int, distance_mm: float = 450.0, elevation_deg: float = 30.0) -> np.ndarray:
-    e = np.radians(elevation_deg)
-    out = []
-    for th in np.linspace(0.0, 2.0 * np.pi, n_views, endpoint=False):
-        c = distance_mm * np.array([np.cos(th) * np.cos(e), np.sin(e), np.sin(th) * np.cos(e)])
-        out.append(_look_at(c, np.array([0.0, 40.0, 0.0])))
-    return np.array(out)
+def _turntable_cameras(n_views: int) -> np.ndarray:
+    return turntable_ring(n_views, look_y_mm=40.0)
 
 
 def _sphere_masks(T_cam_table: np.ndarray, centre=CENTRE_TABLE, radius=RADIUS_MM) -> np.ndarray:

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from synthetic_images import turntable_ring
 
-from calib.camera import look_at
 from recon.carving import carve_hull
 from recon.faces import carve_above_faces, find_faces
 
@@ -15,13 +15,8 @@ K = np.array([[F_PX, 0.0, (W - 1) / 2], [0.0, F_PX, (H - 1) / 2], [0.0, 0.0, 1.0
 BOX_LO, BOX_HI = np.array([-30.0, 0.0, -20.0]), np.array([30.0, 40.0, 20.0])  # table mm, its top at 40
 
 
-def _cameras(n_views: int = 24, distance_mm: float = 450.0, elevation_deg: float = 30.0) -> np.ndarray:
-    e = np.radians(elevation_deg)
-    out = []
-    for th in np.linspace(0.0, 2.0 * np.pi, n_views, endpoint=False):
-        c = distance_mm * np.array([np.cos(th) * np.cos(e), np.sin(e), np.sin(th) * np.cos(e)])
-        out.append(look_at(c, np.array([0.0, 25.0, 0.0])))
-    return np.array(out)
+def _cameras() -> np.ndarray:
+    return turntable_ring(24, look_y_mm=25.0)
 
 
 def _rays(T):
