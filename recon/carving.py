@@ -25,6 +25,13 @@ whose ``|D|`` exceeds its half-diagonal (times a margin) cannot contain the
 surface, its children inherit its value, and only cells near the zero level
 set are evaluated at the next, twice finer, level.
 
+With automatic silhouettes one wrong view is tolerated (``k = 1``), but the
+background a view sees *round* the object is not a wrong silhouette: given
+``outer_masks`` (each view's silhouette grown over what its outline may have
+missed, :func:`held_past_edges`, its holes and narrow bays filled), each view
+also votes against those, and ``D`` is the smaller of the above and the
+``k``-th smallest of these votes.
+
 Out-of-image policy: a view in which a point projects outside the image (or
 behind the camera) cannot reject it (the object may overhang the frame edge
 in a few views); a point must however be seen by at least half of the views
@@ -54,7 +61,8 @@ from calib.camera import as_K, as_poses
 
 from .types import VoxelHull
 
-__all__ = ["carve_hull", "silhouette_sdf_px", "largest_visible_radius_mm", "largest_visible_height_mm",
+__all__ = ["carve_hull", "silhouette_sdf_px", "fill_enclosed", "held_past_edges", "outer_band_px",
+           "largest_visible_radius_mm", "largest_visible_height_mm",
            "largest_carvable_radius_mm", "hull_peak_bytes", "HullTooLarge", "drop_floating_bodies",
            "rejoin_cut_off"]
 
@@ -94,6 +102,55 @@ def memory_available_bytes() -> int | None:
     except (OSError, ValueError, IndexError):
         return None
     return None
+
+
+OUTER_BAND = 0.0025  # a view's silhouette outline is doubtful within this share of the image diagonal ...
+OUTER_BAND_MIN_PX = 2.0  # ... and this many pixels at least (4 px at 1280 x 960, 2 px at 640 x 480)
+EDGE_LO, EDGE_HI = 8, 16  # Canny's thresholds on the grey image (Gaussian sigma 1): a white box's lit face on the
+# lit paper shows an edge of 30-50 grey levels; the paper's grain at 4 / 8 is edges everywhere
+
+
+def outer_band_px(width: int, height: int) -> float:
+    """The band (pixels) round a silhouette of a ``width`` x ``height`` image in which its outline is doubtful."""
+    return max(OUTER_BAND_MIN_PX, OUTER_BAND * math.hypot(width, height))
+
+
+def fill_enclosed(mask: np.ndarray, bay_px: float = 0.0) -> np.ndarray:
+    """(H, W) bool: ``mask`` with its enclosed holes filled: the background components (4-connected) that do not
+    reach the image's border; first closed with a disc of radius ``bay_px`` (a bay whose mouth is narrower than
+    twice that is a hole too)."""
+    m = np.asarray(mask, bool)
+    if bay_px >= 1.0:
+        r = int(round(bay_px))
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        pad = cv2.copyMakeBorder(m.astype(np.uint8), r, r, r, r, cv2.BORDER_CONSTANT, value=0)
+        m = m | (cv2.morphologyEx(pad, cv2.MORPH_CLOSE, disc)[r:-r, r:-r] > 0)
+    n, lab = cv2.connectedComponents((~m).astype(np.uint8), connectivity=4)
+    if n <= 2:
+        return m
+    border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
+    return m | ~np.isin(lab, border)
+
+
+def held_past_edges(held: np.ndarray, image_rgb: np.ndarray, band_px: float) -> np.ndarray:
+    """(H, W) bool: ``held`` grown by up to ``band_px`` pixels (4-connected steps) without crossing an edge of
+    the image (Canny, :data:`EDGE_LO` / :data:`EDGE_HI`); the edge pixels it reaches are held too.
+
+    Where a silhouette's outline stops short of the object's (a pixel or two inside it: the edge is still
+    ahead), this takes the rest up to the edge; where the outline sits on an edge, or stops on an edge
+    beyond the object (doubtful paper ending at the target's printed ring), nothing is added: past it is
+    the background the view sees round the object (:func:`carve_hull`'s ``outer_masks``).
+    """
+    grey = cv2.GaussianBlur(cv2.cvtColor(np.asarray(image_rgb), cv2.COLOR_RGB2GRAY), (0, 0), 1.0)
+    edge = cv2.Canny(grey, EDGE_LO, EDGE_HI) > 0
+    held = np.asarray(held, bool)
+    free = ~edge
+    reach = held & free
+    cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+    for _ in range(int(math.ceil(band_px))):
+        reach = (cv2.dilate(reach.astype(np.uint8), cross) > 0) & free
+    grown = held | reach
+    return grown | ((cv2.dilate(grown.astype(np.uint8), cross) > 0) & edge)
 
 
 def silhouette_sdf_px(mask: np.ndarray, margin_px: int = 64) -> np.ndarray:
@@ -270,11 +327,16 @@ def _make_region(bounds_table, radius_mm, height_mm, K, T, width, height) -> _Re
 class _Views:
     """Projection matrices and silhouette distance maps of all views."""
 
-    def __init__(self, masks: np.ndarray, K: np.ndarray, T: np.ndarray, max_rejections: int):
+    def __init__(self, masks: np.ndarray, K: np.ndarray, T: np.ndarray, max_rejections: int,
+                 outer_masks: np.ndarray | None = None):
         self.P = (K @ T[:, :3, :]).astype(np.float32)  # (V, 3, 4)
         self.inv_f = np.float32(1.0 / math.sqrt(K[0, 0] * K[1, 1]))
         self.sdf_px = [silhouette_sdf_px(m) for m in masks]
         self.height, self.width = masks.shape[1:]
+        # the outer silhouettes, enclosed holes and narrow bays filled: one rejection fewer suffices outside them
+        bay = 2.0 * outer_band_px(self.width, self.height)
+        self.outer_px = [silhouette_sdf_px(fill_enclosed(m, bay)) for m in outer_masks] \
+            if outer_masks is not None and max_rejections > 0 else []
         self.k = max_rejections
         self.min_seen = max(max_rejections + 1, (len(masks) + 1) // 2)
 
@@ -294,6 +356,7 @@ class _Views:
         pts_h[3] = 1.0
         proj = self.P.reshape(-1, 4) @ pts_h  # (3 V, n): u w, v w, w of every view
         best = [np.full(rows * cols, np.inf, np.float32) for _ in range(self.k + 1)]  # k+1 smallest votes, sorted
+        outer = [np.full(rows * cols, np.inf, np.float32) for _ in range(self.k if self.outer_px else 0)]
         seen = np.zeros(rows * cols, np.uint16)
         inv_w, u, v, vote = (np.empty(rows * cols, np.float32) for _ in range(4))
         for i, sdf in enumerate(self.sdf_px):
@@ -313,7 +376,16 @@ class _Views:
                 lo = np.minimum(best[j], vote)
                 np.maximum(best[j], vote, out=vote)
                 best[j] = lo
-        value = best[self.k]
+            if outer:  # the same vote against the outer silhouette, into its sorted k smallest
+                s = cv2.remap(self.outer_px[i], u.reshape(rows, cols), v.reshape(rows, cols), cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_CONSTANT, borderValue=_UNSEEN_PX).ravel()
+                np.multiply(s, w, out=vote)
+                vote *= self.inv_f
+                for j in range(self.k):
+                    lo = np.minimum(outer[j], vote)
+                    np.maximum(outer[j], vote, out=vote)
+                    outer[j] = lo
+        value = best[self.k] if not outer else np.minimum(best[self.k], outer[self.k - 1])
         value[seen < self.min_seen] = -np.float32(_UNSEEN_PX)
         return value[:n]
 
@@ -423,8 +495,10 @@ def _peak_bytes(dims, n_views: int, image_hw: tuple[int, int]) -> int:
 
 def hull_peak_bytes(masks: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, *,
                     bounds_table: np.ndarray | None = None, radius_mm: float | None = None,
-                    height_mm: float | None = None, resolution: int = 256, max_rejections: int = 1) -> int:
-    """Estimated peak memory (bytes) of :func:`carve_hull` with these arguments, beyond its inputs.
+                    height_mm: float | None = None, resolution: int = 256, max_rejections: int = 1,
+                    outer: bool = False) -> int:
+    """Estimated peak memory (bytes) of :func:`carve_hull` with these arguments (``outer``: with
+    ``outer_masks``), beyond its inputs.
 
     Computes the views' distance maps and the coarse carve (``32^3`` points)
     to find the grid; the fine grid is not allocated.
@@ -433,12 +507,13 @@ def hull_peak_bytes(masks: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, *
     V, H, W = masks.shape
     views = _Views(masks, K, T, k)
     _, dims = _grid(views, _make_region(bounds_table, radius_mm, height_mm, K, T, W, H), resolution)
-    return _peak_bytes(dims, V, (H, W))
+    return _peak_bytes(dims, 2 * V if outer else V, (H, W))
 
 
 def carve_hull(masks: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, *,
                bounds_table: np.ndarray | None = None, radius_mm: float | None = None,
                height_mm: float | None = None, resolution: int = 256, max_rejections: int = 1,
+               outer_masks: np.ndarray | None = None,
                progress: Callable[[int, int], None] | None = None) -> VoxelHull:
     """Carve the visual hull of the silhouettes as a sub-voxel signed distance grid.
 
@@ -462,6 +537,18 @@ def carve_hull(masks: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, *,
         Voxels along the longest side of the (tightened) box.
     max_rejections : int
         ``k``: a voxel survives if at most ``k`` views reject it.
+    outer_masks : (V, H, W) bool, optional
+        With ``k >= 1``: each view's silhouette grown over what its outline
+        may have missed (:func:`held_past_edges`); a voxel is also carved
+        where ``k`` views (one fewer) see it outside this, once its enclosed
+        holes and its bays narrower than four :func:`outer_band_px` are
+        filled (:func:`fill_enclosed`). Tolerating one view's rejection keeps
+        a hole in its silhouette from boring a tunnel through what every
+        other view holds (a patch of a white teapot's shoulder that looks
+        like the paper behind it); it also left the paper round a white box's
+        foot (its shadow, its doubtful lit paper) in the hull wherever a
+        single view saw it beside the box. The background a view sees round
+        the object, past the outline's edge, is what it sees past it.
     progress : callable(done, total), optional
         Called after each refinement level.
 
@@ -482,12 +569,14 @@ def carve_hull(masks: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, *,
         raise ValueError(f"resolution must be at least 4, got {resolution}")
     V, H, W = masks.shape
     region = _make_region(bounds_table, radius_mm, height_mm, K, T, W, H)
-    views = _Views(masks, K, T, k)
+    if outer_masks is not None and np.shape(outer_masks) != masks.shape:
+        raise ValueError(f"outer_masks must have the masks' shape {masks.shape}, got {np.shape(outer_masks)}")
+    views = _Views(masks, K, T, k, None if outer_masks is None else np.asarray(outer_masks, bool))
     (lo, hi, voxel, levels), dims = _grid(views, region, resolution)
     total = levels + 2
     if progress is not None:
         progress(1, total)
-    needed, available = _peak_bytes(dims, V, (H, W)), memory_available_bytes()
+    needed, available = _peak_bytes(dims, V + len(views.outer_px), (H, W)), memory_available_bytes()
     if available is not None and needed > available:
         raise HullTooLarge(int(resolution), dims, needed, available)
     step = 2 ** levels
@@ -508,7 +597,8 @@ def carve_hull(masks: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, *,
     origin = centre - 0.5 * (dims - 1) * voxel
     side, top = _touching(vals, region, origin, voxel)
     np.clip(vals, -cap, cap, out=vals)
-    meta = {"max_rejections": k, "views": V, "region_lo": region.lo.tolist(), "region_hi": region.hi.tolist(),
+    meta = {"max_rejections": k, "outer": bool(views.outer_px), "views": V,
+            "region_lo": region.lo.tolist(), "region_hi": region.hi.tolist(),
             "evaluated": int(evaluated), "touches_side": side, "touches_top": top}
     return VoxelHull(values=vals, origin_table=origin, voxel_mm=voxel, meta=meta)
 

@@ -9,7 +9,7 @@ import pytest
 from scipy import ndimage
 from synthetic_images import turntable_ring
 
-from recon.carving import carve_hull, silhouette_sdf_px
+from recon.carving import carve_hull, held_past_edges, silhouette_sdf_px
 from recon.types import VoxelHull
 
 W, H, F_PX = 320, 240, 375.0
@@ -119,6 +119,71 @@ def test_one_bad_silhouette_tolerated_with_one_rejection(scene):
 
     assert vol(strict) < 0.8 * vol(good_hull)
     assert vol(tolerant) == pytest.approx(vol(good_hull), rel=0.02)
+
+
+def test_outer_background_carves_alone_and_a_hole_does_not(scene):
+    """``outer_masks``: one view's background round the object carves alone; a hole in its silhouette needs a
+    second view (a patch of an uncertain mask would bore a tunnel through the body)."""
+    T, masks = scene
+    fat = np.array([ndimage.binary_dilation(m, iterations=12) for m in masks])  # every view holds a margin
+    fat[5] = masks[5]  # ... but one, which sees the background right round the sphere
+    outer = np.array([ndimage.binary_dilation(m, iterations=6) for m in fat])  # what their outlines may miss
+    outer[5] = masks[5]  # ... nothing in view 5 (its outline on an edge)
+    holed = masks.copy()
+    ys, xs = np.nonzero(masks[2])
+    cy, cx = int(ys.mean()), int(xs.mean())
+    holed[2, cy - 6:cy + 7, cx - 6:cx + 7] = False  # a hole through the middle of one view's silhouette
+
+    def vol(h):
+        return np.count_nonzero(h.values > 0) * h.voxel_mm**3
+
+    def carve(m, **kw):
+        return carve_hull(m, K, T, radius_mm=80.0, resolution=64, **kw)
+
+    tolerant, alone = carve(fat, max_rejections=1), carve(fat, max_rejections=1, outer_masks=outer)
+    strict = carve(fat, max_rejections=0)
+    assert alone.meta["outer"] and not tolerant.meta["outer"]
+    # view 5's background carved alone: nearly all that k = 0 carves, not what one view may miss round the others
+    assert vol(strict) < vol(alone) < vol(strict) + 0.25 * (vol(tolerant) - vol(strict))
+    # the hole: a tunnel at k = 0, nothing with one rejection tolerated, outer masks or not
+    centre = CENTRE_TABLE[None]
+    assert _values_at(carve(holed, max_rejections=0), centre)[0] < 0
+    assert _values_at(carve(holed, max_rejections=1, outer_masks=holed), centre)[0] > 10.0
+    # the outer background of a view that lost half the object carves that half, as it says
+    half = masks.copy()
+    half[3, :, : W // 2] = False
+    assert vol(carve(half, max_rejections=1, outer_masks=half)) < 0.8 * vol(carve(masks, max_rejections=1))
+    with pytest.raises(ValueError, match="outer_masks"):
+        carve(masks, max_rejections=1, outer_masks=masks[:3])
+
+
+def _disc_image(rng, disc_grey: int, ring_radius: float | None = None):
+    """A grey image (noisy paper at 200) with a disc of ``disc_grey`` (radius 30 px) and, optionally, a dark
+    printed ring of 2 px at ``ring_radius``; returns the image (RGB) and the pixels' distance from the centre."""
+    yy, xx = np.mgrid[0:120, 0:160]
+    r = np.hypot(yy - 60.0, xx - 80.0)
+    grey = np.where(r <= 30.0, float(disc_grey), 200.0)
+    if ring_radius is not None:
+        grey[np.abs(r - ring_radius) <= 1.0] = 40.0
+    grey = np.clip(grey + rng.normal(0.0, 1.0, grey.shape), 0, 255).astype(np.uint8)
+    return np.repeat(grey[..., None], 3, axis=2), r
+
+
+def test_held_past_edges_takes_what_the_outline_missed_up_to_the_edge():
+    rng = np.random.default_rng(3)
+    img, r = _disc_image(rng, 150)
+    disc = r <= 30.0
+    short = r <= 28.0  # an outline two pixels inside the object's
+    grown = held_past_edges(short, img, 4.0)
+    assert not (disc & ~grown).any()  # the object is held up to its edge ...
+    assert not (grown & (r > 32.0)).any()  # ... and nothing past it
+    # no edge (the disc in the paper's own grey): the band is held whole, the outline cannot be told
+    plain, _ = _disc_image(rng, 200)
+    assert (held_past_edges(short, plain, 4.0) & (r > 30.5)).any()
+    # doubtful paper held round the object, ending on the target's printed ring: nothing past the ring
+    ringed, _ = _disc_image(rng, 150, ring_radius=38.0)
+    grown = held_past_edges(r <= 37.0, ringed, 4.0)
+    assert grown[r <= 37.0].all() and not (grown & (r > 40.0)).any()
 
 
 def test_box_region_clips_flat(scene):

@@ -49,8 +49,9 @@ def add_job_arguments(parser) -> None:
                         help="use N frames spread evenly over the input (not with --every)")
     parser.add_argument("--max-rejections", type=int, default=None, metavar="K",
                         help="a voxel survives if at most K silhouettes reject it (default: 0 with --masks, whose "
-                             "silhouettes are trusted; 1 with automatic ones, so that one view's mistake cannot cut "
-                             "the object)")
+                             "silhouettes are trusted; 1 with automatic ones, so that a hole in one view's "
+                             "silhouette cannot bore through the object; the background a view sees round the object, "
+                             "past the edge its outline sits on, rejects with K-1)")
     parser.add_argument("--work-size", metavar="N|full",
                         help="long side in pixels of the images silhouettes, stereo and colour work on (rings and "
                              "calibration always use the full photos); 'full' for no reduction (default: photos "

@@ -27,9 +27,14 @@ class GridTooLarge(UserError):
     """``--resolution`` asks for a grid that does not fit in memory (refused before it is allocated)."""
 
 
-def carve_hull(masks, K, Ts, opts, cache, key, progress, vol, rejections: int | None = None):
+def carve_hull(masks, K, Ts, opts, cache, key, progress, vol, rejections: int | None = None, images=None,
+               held=None):
     """The visual hull of ``masks`` in the working volume ``vol`` (cached under ``key``); a voxel is carved where
-    more than ``rejections`` views see background there (default: :func:`max_rejections` of ``opts``)."""
+    more than ``rejections`` views see background there (default: :func:`max_rejections` of ``opts``).
+
+    Given the frames (``images``, automatic silhouettes), also where one view fewer sees the background round
+    the object: past the edge its outline sits on (:func:`recon.carving.held_past_edges` of ``held``, default
+    ``masks``; with its holes and narrow bays filled)."""
     from recon.types import VoxelHull
 
     fields = {"values": ("f", (None, None, None)), "origin": ("f", (3,)), "voxel_mm": ("f", ()),
@@ -41,13 +46,20 @@ def carve_hull(masks, K, Ts, opts, cache, key, progress, vol, rejections: int | 
         return VoxelHull(values=hit["values"], origin_table=hit["origin"], voxel_mm=float(hit["voxel_mm"]), meta=meta)
     from recon.carving import HullTooLarge, carve_hull
 
+    outer = None
+    if images is not None:  # automatic silhouettes: the background round the object carves alone
+        from recon.carving import held_past_edges, outer_band_px
+
+        band = outer_band_px(masks.shape[2], masks.shape[1])
+        outer = np.array([held_past_edges(m, im, band) for m, im in
+                          zip(masks if held is None else held, images, strict=True)])
     with progress.stage("carving") as tick:
         try:
             hull = carve_hull(masks, K, Ts, radius_mm=vol.radius_mm, height_mm=vol.height_mm,
                               resolution=opts.resolution,
                               max_rejections=min(max_rejections(opts) if rejections is None else rejections,
                                                  len(masks) - 1),
-                              progress=tick)
+                              outer_masks=outer, progress=tick)
         except HullTooLarge as exc:  # not the silhouettes' fault: say only what to change
             raise GridTooLarge(f"{opts.input}: --resolution {opts.resolution}: {exc}") from None
         except ValueError as exc:
@@ -158,10 +170,15 @@ def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progres
 
     def carve(sil, keep, key, vol, rejections=None):
         k = max_rejections(opts) if rejections is None else rejections
-        hull_key = stage_key(key, keep, opts.resolution, k, vol.key())
+        hull_key = stage_key(key, keep, opts.resolution, k, vol.key(), "round the object")
+        held = sil.masks[keep] | sil.unknown[keep]
         try:
-            return carve_hull(sil.masks[keep] | sil.unknown[keep], K, Ts[keep], opts, cache, hull_key, progress,
-                               vol, k)
+            # the background round the object is judged on the silhouettes as estimated: what the wall's split
+            # took off a view (doubt_off_the_outline) is doubt, not background (alone, one view's split cut a
+            # white figure's hand off)
+            return carve_hull(held, K, Ts[keep], opts, cache, hull_key, progress, vol, k,
+                              images=[images_rgb[i] for i in keep] if automatic else None,
+                              held=held | orig.masks[keep] | orig.unknown[keep])
         except GridTooLarge:
             raise
         except UserError as exc:  # nothing left: say what each view's silhouette was
@@ -173,6 +190,7 @@ def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progres
         if key != sil_for:
             sil, sil_for = silhouettes_stage(images_rgb, names, K, Ts, opts, cache, key, progress, vol, ws,
                                               intr), key
+            orig = sil  # as estimated, before any split
         keep, rejected, conservative = verdicts(names, sil.status)
         if len(keep) < MIN_VIEWS:
             return HullStage(sil, keep, rejected, conservative, None, vol, {})
