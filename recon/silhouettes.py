@@ -62,7 +62,10 @@ that distance where a fifth of the views hold them (the upper spheres of a
 snowman beyond the shaded crease under them)
 (:func:`recon.silhouette_doubt.doubt_across`; a poster behind the object
 reaches it only while the object turns past), with the doubtful gaps
-between them and the object closed. Last, doubtful pixels unlike the
+between them and the object closed; and only where the frame shows the
+room plate's colour, as a static part does in every frame (the paper
+beside a white box seen edge-on, which the box covers in most frames,
+was held as a static part of it). Last, doubtful pixels unlike the
 background's own colour (a thin arm whose shading turns across it, all
 edge) join where they touch what the frame holds
 (:func:`recon.silhouette_doubt.doubt_unlike`), and holes in what the frame
@@ -265,6 +268,17 @@ ACROSS_GAP = 0.005  # ... and reaching the object within this share of the image
 ACROSS_WIDE = 2.5  # ... and, where a fifth of the views hold them by then, within this many times that distance
 ALIKE_STATIC = 0.9  # held_alike: an object is static where this share of its masks' core is
 _PLAIN_ROOM = 0.05  # a room whose colours fill less than this share of the RGB cube is "plain"
+
+
+def _room_alike_full(plates: Plates, i: int, box, size_hw) -> np.ndarray:
+    """(H, W) bool: where frame ``i`` shows the room plate's colour (``plates.room_alike``, on the whole image).
+
+    A static part looks the same in every frame, so it is the room plate there; a pixel beside a turning
+    object that its masks hold in most frames (a white box seen edge-on: the paper beside it, which the box
+    covers whenever it is turned) shows the paper in this frame, not the plate's box."""
+    full = np.zeros(size_hw, bool)
+    full[box] = plates.room_alike[i]
+    return full
 
 
 def static_votes(across: np.ndarray, masks: np.ndarray) -> np.ndarray:
@@ -942,7 +956,9 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
         # shaded side has the wall's grey for more than the near gap (a poster never gets that far)
         held = held_votes(across_far[used], masks[used])
         for i in used:
-            unknown[i] |= _hold_across(masks[i] | unknown[i], ((across[i] & often, gap), (across_far[i] & held, far)),
+            alike = _room_alike_full(plates, i, box, (H, W))
+            unknown[i] |= _hold_across(masks[i] | unknown[i], ((across[i] & often & alike, gap),
+                                                               (across_far[i] & held & alike, far)),
                                        doubtful[i], box) & union & ~masks[i]
         # then, up to a wider gap, what a fifth of the views hold by now (mask or unknown): a static body
         # shows the same pixels in every view, and whether its shading joins a part to what a view holds
@@ -953,7 +969,7 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
         if across_wide is not None:
             wide_ok = wide_votes(across_wide[used], masks[used] | unknown[used])
             for i in used:
-                cand = across_wide[i] & wide_ok & ~unknown[i]
+                cand = across_wide[i] & wide_ok & ~unknown[i] & _room_alike_full(plates, i, box, (H, W))
                 unknown[i] |= _hold_across(masks[i] | unknown[i], ((cand, wide),), doubtful[i], box) \
                     & union & ~masks[i]
     if used:  # static parts the masks of a fifth of the views alike hold (held_static), within the wide gap
