@@ -25,7 +25,7 @@ from calib.camera import circle_points_table, look_at, make_T, plane_homography,
 from calib.target import TargetSpec
 from turntable.pattern import render_target_image
 
-__all__ = ["SyntheticPhoto", "look_at_T", "render_target_photo", "paper_raster", "sheet_size_mm"]
+__all__ = ["SyntheticPhoto", "look_at_T", "turntable_ring", "render_target_photo", "paper_raster", "sheet_size_mm"]
 
 
 @dataclass(frozen=True)
