@@ -1,5 +1,6 @@
 """Raised horizontal faces (recon.faces): a white box's flat top found by the edges' plane sweep, and the roof that
-the silhouettes leave over it carved; a sphere (no flat top) left alone."""
+the silhouettes leave over it carved; a sphere (no flat top) left alone. Flat sides (recon.sides): the tent the
+silhouettes leave over a white box's sides carved between its corners; round sides left alone."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from synthetic_images import turntable_ring
 
 from recon.carving import carve_hull
 from recon.faces import carve_above_faces, find_faces
+from recon.sides import flatten_sides
 
 W, H, F_PX = 640, 480, 750.0
 K = np.array([[F_PX, 0.0, (W - 1) / 2], [0.0, F_PX, (H - 1) / 2], [0.0, 0.0, 1.0]])
@@ -186,3 +188,36 @@ def test_a_band_painted_round_a_column_is_no_top():
     images, masks = _render(T, "column", np.random.default_rng(3))
     hull = carve_hull(masks, K, T, radius_mm=60.0, height_mm=120.0, resolution=128, max_rejections=0)
     assert find_faces(images, masks, K, T, hull) == []
+
+
+def test_the_tent_over_a_white_boxs_sides_is_carved_between_its_corners(box_scene):
+    """With views every 15 deg none looks along a side: the hull's section bows out in front of each side's
+    middle (~3.9 mm over the 60 mm side). The corners' edges show in most views, the sides are plain: the
+    hull outside the chords between the corners goes, and nothing of the box."""
+    images, masks, T, _ = box_scene
+    hull = carve_hull(masks, K, T, radius_mm=60.0, height_mm=90.0, resolution=200, max_rejections=0)
+    tents = np.array([[0.0, y, BOX_HI[2] + 1.0] for y in (10.0, 20.0)]
+                     + [[0.0, y, BOX_LO[2] - 1.0] for y in (10.0, 20.0)]
+                     + [[BOX_HI[0] + 1.0, y, 0.0] for y in (10.0, 20.0, 30.0)])
+    assert _inside(hull, tents).all()  # the silhouettes leave a tent over every side
+    flat, sides = flatten_sides(hull, images, masks, K, T)
+    assert sides and sum(s.volume_mm3 for s in sides) > 2000.0
+    assert not _inside(flat, tents).any()
+    v = hull.voxel_mm
+    g = np.stack(np.meshgrid(*[np.arange(lo + v, hi - v, v) for lo, hi in zip(BOX_LO, BOX_HI, strict=True)],
+                             indexing="ij"), -1).reshape(-1, 3)
+    assert _inside(flat, g).all()
+    # the mesh's surface (the values' zero) lies on the sides: a side's middle point is inside by under a voxel
+    on = np.array([[0.0, 20.0, BOX_HI[2] - 0.5 * v], [0.0, 20.0, BOX_HI[2] + 1.0 * v]])
+    assert _inside(flat, on[:1]).all() and not _inside(flat, on[1:]).any()
+
+
+@pytest.mark.parametrize("shape", ["sphere", "lid"])
+def test_round_sides_have_no_corners_and_keep_their_hull(shape):
+    """A sphere's and a round box's hull bows out between the views' silhouettes too, but no point of their
+    outline lands on an edge in most views (their shading is smooth): nothing carved."""
+    T = _cameras()
+    images, masks = _render(T, shape, np.random.default_rng(4))
+    hull = _hull(masks, T)
+    flat, sides = flatten_sides(hull, images, masks, K, T)
+    assert sides == [] and np.array_equal(flat.values, hull.values)

@@ -174,6 +174,17 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
         progress.note(f"hull: {note}")
         carved.report.setdefault("notes", []).append(note)
 
+    from recon.sides import flatten_sides
+
+    with progress.stage("flat sides"):  # the tent the silhouettes leave over a box's plain sides
+        hull, sides = flatten_sides(hull, images_rgb, masks, K, Ts)
+    if sides:
+        lo, hi = min(s.lo_mm for s in sides), max(s.hi_mm for s in sides)
+        note = (f"flat sides between corners from {lo:.1f} to {hi:.1f} mm above the table: the tent the silhouettes "
+                f"leave over them carved ({sum(s.volume_mm3 for s in sides) / 1000.0:.1f} cm³)")
+        progress.note(f"hull: {note}")
+        carved.report.setdefault("notes", []).append(note)
+
     from recon.meshing import clip_to_hull, mesh_from_hull
 
     with progress.stage("hull mesh"):  # smoothing moves vertices up to ~0.3 mm out: back inside the hull
