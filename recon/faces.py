@@ -54,7 +54,8 @@ PX_PER_MM = 3.0  # the planes' raster ...
 MAX_TEXELS = 250_000  # ... coarser where the object's footprint would need more texels
 MAX_HEIGHTS = 400  # the sweep's step grows where more heights would be needed
 MIN_HEIGHT_MM = 2.0  # faces start this far above the table (the table's own print is at 0)
-EDGE_SHARE = 0.7  # a texel is on an outline where this share of the views that see it show an edge there
+EDGE_SHARE = 0.7  # a texel is on an outline where this share of the views that see it show an edge there ...
+SOFT_EDGE_SHARE = 0.5  # ... or, where that finds no sharp peak, this share (a soft image's spread edges)
 PEAK = 2.5  # ... a height is a face's where it has this many times the outline texels of 2 mm above and below
 PEAK_OFFSET_MM = 2.0
 MIN_OUTLINE_MM = 20.0  # ... and at least this long an outline
@@ -142,28 +143,35 @@ def find_faces(images_rgb, masks, K, Ts, hull: VoxelHull) -> list[Face]:
     sections = _sections(hull, heights, x0, z0, shape, px)
     near = np.ones((int(4 * px) + 1,) * 2, np.uint8)  # 2 mm round the hull's section
 
-    def outline(k: int) -> np.ndarray:
+    def outline(k: int, share: float = EDGE_SHARE) -> np.ndarray:
         votes = np.zeros(shape, np.float32)
         for e, T in zip(edges, Ts, strict=True):
             votes += _warp(e, _plane_map(K, T, float(heights[k]), x0, z0, px), size, nearest=True)
         # the share of the views with an edge there (the hull is in every view: its working volume is)
-        return (votes >= EDGE_SHARE * len(Ts)) & (cv2.dilate(sections[k].astype(np.uint8), near) > 0)
+        return (votes >= share * len(Ts)) & (cv2.dilate(sections[k].astype(np.uint8), near) > 0)
 
-    score = np.array([outline(k).sum() for k in range(len(heights))])
+    scores = {share: np.array([outline(k, share).sum() for k in range(len(heights))])
+              for share in (EDGE_SHARE, SOFT_EDGE_SHARE)}
     off = max(int(round(PEAK_OFFSET_MM / step)), 1)
+
+    def peak(k: int, score: np.ndarray) -> bool:
+        return bool(score[k] >= MIN_OUTLINE_MM * px and score[k] >= score[max(k - 2, 0):k + 3].max()
+                    and score[k] >= PEAK * max(score[k - off], score[k + off]))
+
     faces: list[Face] = []
     for k in range(off, len(heights) - off):
         h = float(heights[k])
-        if h < MIN_HEIGHT_MM or score[k] < MIN_OUTLINE_MM * px:
+        # a soft image (defocus) spreads a top's edge: fewer views put it on the same texels, and the
+        # outline the stricter share finds is thin on both sides of the peak; the looser share's is sharp
+        share = next((s for s, score in scores.items() if peak(k, score)), None)
+        if h < MIN_HEIGHT_MM or share is None:
             continue
-        if score[k] < score[max(k - 2, 0):k + 3].max() or score[k] < PEAK * max(score[k - off], score[k + off]):
-            continue
-        for face in _faces_at(h, outline(k), sections[k], images_rgb, K, Ts, x0, z0, px, size):
+        for face in _faces_at(h, outline(k, share), sections[k], images_rgb, K, Ts, x0, z0, px, size):
             # flat: nothing inside it outlines itself higher up (a lid's dome, a knob: their contours do)
             r = max(int(round(INNER_MM * px)), 1)
             inner = cv2.erode(face.region.astype(np.uint8), np.ones((2 * r + 1,) * 2, np.uint8)) > 0
             above = range(k + max(int(round(1.0 / step)), 1), min(k + int(round(RISE_MM / step)) + 1, len(heights)))
-            if not inner.any() or any((outline(j) & inner).sum() > RISE_SHARE * inner.sum() for j in above):
+            if not inner.any() or any((outline(j, share) & inner).sum() > RISE_SHARE * inner.sum() for j in above):
                 continue
             if _stands_high(face, hull, Ts):
                 continue
