@@ -10,15 +10,18 @@ of shading between two sides, or the outline, in most views that see them.
 
 So, height by height, the hull's section outline is walked and each of its
 points projected into every view: a point on a corner lands on an image
-edge in most views (``CORNER_SHARE``), a point on a side's tent in few (a
-plain side has no edge inside it). Between two consecutive corners whose
-outline bows out of the chord by no more than a tent could (``MAX_BULGE``
-of the chord), the hull outside the chord goes, if the side is flat: the
-views that face it see the chord of one shade all over (a plain flat side
-is evenly lit; a cylinder's shading runs across it, a printed side has its
-print). Nothing is carved that leaves a view's silhouette pixels without a
-voxel behind them (``GUARD``, per band of heights: a cast shadow held in a
-silhouette keeps the hull at the foot).
+edge in most views (``CORNER_SHARE``) and the outline turns there
+(``MIN_TURN_DEG``), a point on a side's tent lands on one in few (a plain
+side has no edge inside it). Between two consecutive corners whose outline
+bows out of the chord by no more than a tent could (``MAX_BULGE`` of the
+chord), the hull outside the chord goes, if the side is flat: the views
+that face it see the chord of one shade all over (a plain flat side is
+evenly lit; a cylinder's shading runs across it, a printed side has its
+print), and the same chord is found in most of the layers either side.
+Nothing is carved that leaves a view's silhouette pixels without a voxel
+behind them (``GUARD``, per band of heights), except next to silhouette
+pixels the hull left unexplained already (a cast shadow held in one view's
+mask, which the other views carved).
 """
 
 from __future__ import annotations
