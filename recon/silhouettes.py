@@ -267,6 +267,10 @@ ACROSS_FAR = 1.5  # ... and, where the masks hold them in four views of five, wi
 ACROSS_GAP = 0.005  # ... and reaching the object within this share of the image diagonal (4 px at 640 x 480)
 ACROSS_WIDE = 2.5  # ... and, where a fifth of the views hold them by then, within this many times that distance
 ALIKE_STATIC = 0.9  # held_alike: an object is static where this share of its masks' core is
+TURN_NEAR_DEG = 25.0  # held_between: frames this near in the turn bracket a turning part ...
+TURN_SHADE_DN = 60  # ... in a shade this near the frame's own (8-bit, each channel) ...
+TURN_MIN_SHARE = 0.02  # ... held where it is a piece beside the mask of at least this share of the mask (a side, not
+# the sliver a leg sweeping past leaves)
 _PLAIN_ROOM = 0.05  # a room whose colours fill less than this share of the RGB cube is "plain"
 
 
@@ -380,6 +384,45 @@ def carved_alone(cands: np.ndarray, held: np.ndarray, K: np.ndarray, T_cam_table
         keep[0] = False
         out[i] = keep[lab]
     return out
+
+
+def held_between(masks: np.ndarray, azimuths_deg: np.ndarray, images: np.ndarray | None = None) -> np.ndarray:
+    """(V, H, W) bool: the pixels that ``masks`` hold both in a frame up to ``TURN_NEAR_DEG`` before each frame and
+    in one up to that after it, in the turn (frames ordered by their cameras' azimuths); with ``images`` (V, H, W, 3),
+    only where those frames show a colour within ``TURN_SHADE_DN`` of this frame's.
+
+    A turning object's side passes through the room's colour for a frame or two as it turns (a white box's
+    shaded side, the wall's very grey, two frames in every half turn: taken for the wall, it was carved
+    from the box 42 pixels deep, 3.5 % of the diagonal); the frames either side show it in a shade near it.
+    The background behind an object is held by its neighbours only where the object sweeps over it and back,
+    and then in the object's colour, not the background's (the dark room between a bunny's two ears)."""
+    a = np.mod(np.asarray(azimuths_deg, float), 360.0)
+    out = np.zeros_like(masks)
+    for i in range(len(masks)):
+        d = (a - a[i] + 180.0) % 360.0 - 180.0
+        sides = []
+        for near in ((d < 0) & (d >= -TURN_NEAR_DEG), (d > 0) & (d <= TURN_NEAR_DEG)):
+            held = masks[near]
+            if images is not None:
+                shade = np.abs(images[near].astype(np.int16) - images[i].astype(np.int16)).max(axis=-1)
+                held = held & (shade <= TURN_SHADE_DN)
+            sides.append(held.any(axis=0))
+        out[i] = sides[0] & sides[1]
+    return out
+
+
+def _large_beside(cand: np.ndarray, mask: np.ndarray, min_px: float) -> np.ndarray:
+    """The connected parts of ``cand`` of at least ``min_px`` pixels that touch ``mask``."""
+    n, lab = cv2.connectedComponents(cand.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return np.zeros_like(cand)
+    size = np.bincount(lab.ravel(), minlength=n)
+    near = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    touch = np.zeros(n, bool)
+    touch[lab[near & cand]] = True
+    keep = (size >= min_px) & touch
+    keep[0] = False
+    return keep[lab]
 
 
 def held_alike(alike: np.ndarray, masks: np.ndarray, doubt: np.ndarray | None = None) -> np.ndarray:
@@ -1002,6 +1045,12 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
             doubt[box] = outs[i].doubtful_strict
             pins[k] = doubt_pinholes(holds[k], doubt)
         unknown[used] |= carved_alone(pins, holds, K, T[used], radius, height)
+    if used:  # a turning part in the room plate's colour for a frame or two, which the frames either side hold
+        between = held_between(masks[np.asarray(used)], camera_azimuths_deg(T[np.asarray(used)]),
+                               imgs[np.asarray(used)])
+        for k, i in enumerate(used):
+            cand = between[k] & _room_alike_full(plates, i, box, (H, W)) & union & ~masks[i] & ~unknown[i]
+            unknown[i] |= _large_beside(cand, masks[i], TURN_MIN_SHARE * masks[i].sum())
     # Last, the outline's blended pixels that the rules above added (they grow a held region by whole pixels,
     # and the pixel past an edge blends both sides): each goes to the side that covers most of it
     # (recon.silhouette_doubt.blend_behind). One such pixel all round a thin white figure is ~0.6 mm at 640 x 480:

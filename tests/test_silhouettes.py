@@ -1080,3 +1080,37 @@ def test_table_plate_knows_the_arc_of_views_a_hidden_point_is_seen_from():
     rest = np.ones((n, n), bool)
     rest[c - 4:c + 5, c + 11:c + 21] = False
     assert tp.trust[rest].all() and not tp.in_arc(0.0)[rest].any()  # elsewhere every view counted
+
+
+def test_a_turning_part_in_the_walls_colour_is_held_by_the_frames_either_side():
+    """A white box's shaded side passes through the wall's grey for a frame or two of the turn: those frames take
+    it for the wall. The frames up to 25 deg either side hold it in a shade of its own (held_between); the wall
+    beside the box, which no neighbour holds on both sides, and what the neighbours hold in another colour (a
+    dark room between two white ears that sweep past it) are not held."""
+    from recon.silhouettes import held_between
+
+    az = np.arange(0.0, 360.0, 10.0)
+    masks = np.zeros((36, 8, 8), bool)
+    masks[:, 2:6, 2:4] = True  # the lit side, held in every frame
+    masks[:, 2:6, 4:6] = True  # the shaded side ...
+    masks[[15, 16], 2:6, 4:6] = False  # ... taken for the wall in frames 15 and 16
+    masks[14, 2:6, 6] = True  # the box's corner sweeps over the wall in frame 14 only
+    got = held_between(masks, az)
+    assert got[15, 2:6, 4:6].all() and got[16, 2:6, 4:6].all()
+    assert not got[15, :, 6].any() and not got[13, :, 7].any()
+    # the frames either side must both be near in the turn: a gap of 40 deg holds nothing
+    far = held_between(masks[[0, 4, 8]], az[[0, 4, 8]])
+    assert far.sum() == 0
+    # with the images: held only where the frames either side show a shade near this frame's. The shaded side is
+    # 120 in frames 15 and 16 (the wall's grey), 100 in the others; the dark room between two ears (20) is held by
+    # the white ears (230) sweeping past it in frames 14 and 17
+    images = np.full((36, 8, 8, 3), 120, np.uint8)
+    images[:, 2:6, 2:4] = 220
+    images[:, 2:6, 4:6] = 100
+    images[[15, 16], 2:6, 4:6] = 120
+    images[:, 0, :] = 20
+    masks[[14, 17], 0, :] = True
+    images[[14, 17], 0, :] = 230
+    got = held_between(masks, az, images)
+    assert got[15, 2:6, 4:6].all() and got[16, 2:6, 4:6].all()
+    assert held_between(masks, az)[15, 0].all() and not got[15, 0].any()
