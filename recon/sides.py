@@ -70,13 +70,10 @@ class Side:
     volume_mm3: float
 
 
-def _edge_maps(images_rgb) -> list[np.ndarray]:
+def _edge_maps(greys: list[np.ndarray]) -> list[np.ndarray]:
+    """Each view's edges (Canny on its smoothed grey), grown by ``EDGE_PX``."""
     k = np.ones((2 * EDGE_PX + 1,) * 2, np.uint8)
-    out = []
-    for im in images_rgb:
-        grey = cv2.GaussianBlur(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY), (0, 0), 1.0)
-        out.append(cv2.dilate(cv2.Canny(grey, 8, 16), k) > 0)
-    return out
+    return [cv2.dilate(cv2.Canny(g, 8, 16), k) > 0 for g in greys]
 
 
 def _lookup(maps, K, Ts, pts) -> np.ndarray:
@@ -242,18 +239,18 @@ def flatten_sides(hull: VoxelHull, images_rgb, masks, K, Ts) -> tuple[VoxelHull,
     o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
     Ts = np.asarray(Ts, float)
     cams = camera_centre_table(Ts)
-    edges = _edge_maps(images_rgb)
-    grey = [cv2.GaussianBlur(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY), (0, 0), 1.0).astype(np.float32)
-            for im in images_rgb]
+    greys = [cv2.GaussianBlur(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY), (0, 0), 1.0) for im in images_rgb]
+    edges = _edge_maps(greys)
+    grey = [g.astype(np.float32) for g in greys]
     need = CORNER_SHARE * len(Ts)
+
     def h_of(iy: int) -> float:
         return float(o[1] + iy * v)
 
     chords: dict[int, list[_Chord]] = {}
     for iy in range(inside.shape[1]):
-        h = o[1] + iy * v
-        if h >= MIN_HEIGHT_MM and inside[:, iy, :].any():
-            chords[iy] = _chords(inside[:, iy, :], h, o, v, edges, grey, K, Ts, cams, need)
+        if h_of(iy) >= MIN_HEIGHT_MM and inside[:, iy, :].any():
+            chords[iy] = _chords(inside[:, iy, :], h_of(iy), o, v, edges, grey, K, Ts, cams, need)
     carved = np.zeros(inside.shape, bool)
     new = vals.copy()
     lowest = True
@@ -280,7 +277,7 @@ def flatten_sides(hull: VoxelHull, images_rgb, masks, K, Ts) -> tuple[VoxelHull,
     # the guard, band by band of heights: what the carving uncovers of each view's silhouette
     after = inside & ~carved
     before_pts, after_pts = _shell(inside, o, v), _shell(after, o, v)
-    band = np.floor((o[1] + np.arange(inside.shape[1]) * v) / BAND_MM).astype(int)
+    band = np.floor(np.array([h_of(iy) for iy in range(inside.shape[1])]) / BAND_MM).astype(int)
     bands = sorted(set(band[np.flatnonzero(carved.any(axis=(0, 2)))].tolist()))
     cidx = np.argwhere(carved)
     band_pts = {b: o + cidx[band[cidx[:, 1]] == b] * v for b in bands}
@@ -317,7 +314,7 @@ def flatten_sides(hull: VoxelHull, images_rgb, masks, K, Ts) -> tuple[VoxelHull,
         if b in bad:
             continue
         layers = np.flatnonzero((band == b) & carved.any(axis=(0, 2)))
-        done.append(Side(float(o[1] + layers[0] * v), float(o[1] + layers[-1] * v), len(layers),
+        done.append(Side(h_of(int(layers[0])), h_of(int(layers[-1])), len(layers),
                          len(band_pts[b]) * v ** 3))
     if not done:
         return hull, []
