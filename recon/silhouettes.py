@@ -400,11 +400,12 @@ def held_between(masks: np.ndarray, azimuths_deg: np.ndarray, images: np.ndarray
     out = np.zeros_like(masks)
     for i in range(len(masks)):
         d = (a - a[i] + 180.0) % 360.0 - 180.0
+        own = None if images is None else images[i].astype(np.int16)
         sides = []
         for near in ((d < 0) & (d >= -TURN_NEAR_DEG), (d > 0) & (d <= TURN_NEAR_DEG)):
             held = masks[near]
             if images is not None:
-                shade = np.abs(images[near].astype(np.int16) - images[i].astype(np.int16)).max(axis=-1)
+                shade = np.abs(images[near].astype(np.int16) - own).max(axis=-1)
                 held = held & (shade <= TURN_SHADE_DN)
             sides.append(held.any(axis=0))
         out[i] = sides[0] & sides[1]
@@ -1046,8 +1047,8 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
             pins[k] = doubt_pinholes(holds[k], doubt)
         unknown[used] |= carved_alone(pins, holds, K, T[used], radius, height)
     if used:  # a turning part in the room plate's colour for a frame or two, which the frames either side hold
-        between = held_between(masks[np.asarray(used)], camera_azimuths_deg(T[np.asarray(used)]),
-                               imgs[np.asarray(used)])
+        sub_used = np.asarray(used)
+        between = held_between(masks[sub_used], camera_azimuths_deg(T[sub_used]), imgs[sub_used])
         for k, i in enumerate(used):
             cand = between[k] & _room_alike_full(plates, i, box, (H, W)) & union & ~masks[i] & ~unknown[i]
             unknown[i] |= _large_beside(cand, masks[i], TURN_MIN_SHARE * masks[i].sum())
