@@ -164,6 +164,17 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
     names = [names[i] for i in keep]
     images_rgb = [images_rgb[i] for i in keep]
     masks, Ts = carved.silhouettes.masks[keep], Ts[keep]
+    if opts.masks_dir is None:  # automatic silhouettes: the cast shadow they held, where every view held some
+        from recon.shadows import SKIRT_MM, carve_cast_shadows
+
+        with progress.stage("cast shadows"):
+            hull, skirt = carve_cast_shadows(hull, images_rgb, masks, carved.silhouettes.unknown[keep], K, Ts)
+        if skirt is not None:
+            note = (f"a cast shadow ({skirt.ratio:.2f} of the lit paper's grey, seen in {skirt.views} views) held in "
+                    f"the silhouettes: the skirt it left within {SKIRT_MM:.0f} mm of the table carved "
+                    f"({skirt.volume_mm3 / 1000.0:.1f} cm³)")
+            progress.note(f"hull: {note}")
+            carved.report.setdefault("notes", []).append(note)
     from recon.faces import carve_above_faces
 
     with progress.stage("flat tops"):  # the roof no silhouette carves over a plinth's or a box's top

@@ -1,0 +1,290 @@
+"""Cast shadows: the skirt a shadow held in the silhouettes leaves round an object's foot.
+
+A white object on white paper casts its key light's shadow on the paper, and
+the shadow has the object's own grey: the automatic silhouettes hold it where
+the object's shaded side shows the same colour. Where every view holds some
+of it (under a teapot's overhanging belly, under a chair's seat), the hull
+keeps a slab of it: a skirt up to ~20 mm high round the foot (1.23 % of a
+teapot's diagonal against 0.37 % from the true silhouettes).
+
+A cast shadow is recognisable all the same:
+
+* **It lies on the plane.** A pixel of it sees the table through no part of
+  the hull above ``SKIRT_MM`` (the ray meets the hull, if at all, low down,
+  and it only runs lower from there).
+* **It is the paper, darker by one factor.** A key light's shadow on the
+  paper is the lit paper times one ratio (the ambient light's share) all
+  over; shaded parts of the object take every ratio their normals give. The
+  ratio is read from the pixels above (grey over the lit paper's grey round
+  the object in that view, in the paper's own chromaticity); the sequence's
+  most common ratio between ``RATIO_LO`` and ``RATIO_HI`` is the shadow's, if
+  it is common enough (``MIN_PEAK_SHARE``).
+* **The paper under it stays paper as the table turns.** The plane point
+  behind the pixel is the object's own (held, under no high part, neither the
+  shadow's grey nor the lit paper's) in at most ``MAX_OWN_SHARE`` of the views
+  that see it under no high part: a low part of the object standing on that
+  point shows its own shading in most of them (a white box's lower sides, lit
+  one way or another as it turns, whose shade matches the shadow's in a few
+  views). And in one of the neighbouring views (up to ``NEIGHBOUR_DEG`` of the
+  turn away) at least, it is not the object's own.
+
+A hull voxel below ``SKIRT_MM`` whose pixel is such a shadow in at least
+``MIN_VOTES`` views is carved. Then a guard: a silhouette pixel of the
+object's own (not the shadow's grey or the lit paper's, nor the penumbra
+beside a released shadow) that loses every voxel behind it gets back the
+carved voxels on its ray; pieces the carving cut loose that are small are
+dropped, and a carving that would cut the object in two, or lift it off the
+table, is not made.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from calib.camera import plane_homography, project_points
+
+from .silhouette_checks import camera_azimuths_deg
+from .silhouette_plates import raster_to_table
+from .types import VoxelHull
+
+__all__ = ["Skirt", "carve_cast_shadows", "SKIRT_MM"]
+
+SKIRT_MM = 20.0  # the heights a skirt is looked for in
+RATIO_LO, RATIO_HI = 0.3, 0.85  # a shadow's grey over the lit paper's, the range searched ...
+RATIO_BIN = 0.01  # ... in bins this wide
+RATIO_TOL = 0.04  # a pixel is in the shadow within this of the shadow's ratio ...
+LIT_TOL = 0.05  # ... and the lit paper within this of 1
+MIN_PEAK_SHARE = 0.08  # the shadow's bin holds at least this share of the candidate pixels
+CHROMA_TOL = 0.012  # the paper's chromaticity (r, g, b over their sum) within this
+PAPER_MARGIN_MM = 30.0  # the lit paper is read on the plane this far round the hull's foot
+MIN_VOTES = 3  # a voxel is carved where this many views see a shadow through it
+MAX_OWN_SHARE = 0.4  # ... and the plane point under it is the object's own in at most this share of the views
+PLANE_PX_PER_MM = 1.0  # (judged on a raster of the plane this fine)
+NEIGHBOUR_DEG = 30.0  # the views that check the plane point under a shadow pixel
+PENUMBRA_PX = 8  # a shade of the paper this near a released shadow is its penumbra
+SMALL_PIECE = 0.02  # a piece cut loose smaller than this share of the largest is dropped
+
+
+@dataclass(frozen=True)
+class Skirt:
+    """What :func:`carve_cast_shadows` carved: the shadow's ratio to the lit paper, the volume (mm^3)
+    and the number of views that saw the shadow."""
+
+    ratio: float
+    volume_mm3: float
+    views: int
+
+
+def _splat(pts: np.ndarray, K, T, shape) -> np.ndarray:
+    """(h, w) bool: the pixels of the points, grown to cover the gaps between voxel centres."""
+    cov = np.zeros(shape, np.uint8)
+    if len(pts):
+        uv = np.rint(project_points(K, T, pts)).astype(int)
+        ok = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < shape[1]) & (uv[:, 1] < shape[0])
+        cov[uv[ok, 1], uv[ok, 0]] = 1
+    cov = cv2.dilate(cov, np.ones((3, 3), np.uint8))
+    return cv2.morphologyEx(cov, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)) > 0
+
+
+def _lookup(img: np.ndarray, pts: np.ndarray, K, T) -> np.ndarray:
+    """(N,) the map's value at each point's pixel (False off the image)."""
+    H, W = img.shape[:2]
+    uv = np.rint(project_points(K, T, pts)).astype(int)
+    ok = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < W) & (uv[:, 1] < H)
+    out = np.zeros(len(pts), bool)
+    out[ok] = img[uv[ok, 1], uv[ok, 0]]
+    return out
+
+
+def _plane_radius(K, T, shape) -> np.ndarray:
+    """(h, w) float32: the distance from the table's axis of the plane point each pixel's ray meets (inf
+    where it meets none in front of the camera)."""
+    H, W = shape
+    T = np.asarray(T, float)
+    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    d = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T @ T[:3, :3]  # ray directions, table frame
+    c = -T[:3, :3].T @ T[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = -c[1] / d[..., 1]
+        r = np.hypot(c[0] + lam * d[..., 0], c[2] + lam * d[..., 2])
+    return np.where((lam > 0) & np.isfinite(r), r, np.inf).astype(np.float32)
+
+
+@dataclass
+class _View:
+    held: np.ndarray  # mask | unknown
+    high: np.ndarray  # the hull above SKIRT_MM covers the pixel
+    paperlike: np.ndarray  # the paper's chromaticity
+    ratio: np.ndarray  # grey over the lit paper's
+    near: np.ndarray  # the plane point lies on the paper round the foot
+
+
+def _view(img, held, high, K, T, radius_mm) -> _View | None:
+    r = _plane_radius(K, T, held.shape)
+    near = r < radius_mm
+    f = img.astype(np.float32)
+    grey = f.mean(axis=-1)
+    bg = near & ~(cv2.dilate(held.astype(np.uint8), np.ones((11, 11), np.uint8)) > 0)
+    if bg.sum() < 100:
+        return None
+    lit = bg & (grey >= np.percentile(grey[bg], 60))
+    paper = f[lit].mean(axis=0)
+    if paper.mean() < 20.0:
+        return None
+    chroma = np.abs(f / np.maximum(f.sum(axis=-1, keepdims=True), 1.0) - paper / paper.sum()).max(axis=-1)
+    ratio = cv2.medianBlur(grey, 3) / float(paper.mean())
+    return _View(held, high, chroma < CHROMA_TOL, ratio, near)
+
+
+def _shadow_ratio(views: list[_View]) -> float | None:
+    """The sequence's shadow ratio: the most common ratio of the candidate pixels, if common enough."""
+    vals = np.concatenate([w.ratio[w.held & ~w.high & w.near & w.paperlike] for w in views])
+    if len(vals) < 1000:
+        return None
+    hist, edges = np.histogram(vals, bins=np.arange(RATIO_LO, RATIO_HI + 0.5 * RATIO_BIN, RATIO_BIN))
+    near3 = np.convolve(hist, np.ones(3), mode="same")  # a peak split between two bins counts whole
+    k = int(np.argmax(near3))
+    if near3[k] < MIN_PEAK_SHARE * len(vals):
+        return None
+    centre = edges[k] + 0.5 * RATIO_BIN
+    return float(np.median(vals[np.abs(vals - centre) <= 1.5 * RATIO_BIN]))
+
+
+def _neighbours(az: np.ndarray) -> list[list[int]]:
+    """For each view, the views just before and after it in the turn within ``NEIGHBOUR_DEG``."""
+    order = np.argsort(az)
+    n = len(az)
+    out: list[list[int]] = [[] for _ in range(n)]
+    for p, i in enumerate(order):
+        for q in (order[(p - 1) % n], order[(p + 1) % n]):
+            gap = abs((az[q] - az[i] + 180.0) % 360.0 - 180.0)
+            if q != i and gap <= NEIGHBOUR_DEG and int(q) not in out[i]:
+                out[i].append(int(q))
+    return out
+
+
+def carve_cast_shadows(hull: VoxelHull, images_rgb, masks: np.ndarray, unknown: np.ndarray, K: np.ndarray,
+                       Ts: np.ndarray) -> tuple[VoxelHull, Skirt | None]:
+    """The hull without the skirt its silhouettes' held cast shadow left (see the module's docstring).
+
+    ``masks``, ``unknown``: (V, H, W) bool, the automatic silhouettes and their unknown pixels of the views
+    ``images_rgb`` (V of (H, W, 3) uint8), cameras ``K``, ``Ts`` (V, 4, 4). Returns the hull (the same object
+    where nothing is carved) and what was carved, or None.
+    """
+    vals = np.asarray(hull.values, np.float32)
+    inside = vals > 0
+    V = len(Ts)
+    if not inside.any() or V < MIN_VOTES:
+        return hull, None
+    o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
+    Ts = np.asarray(Ts, float)
+    idx = np.argwhere(inside)
+    y = o[1] + idx[:, 1] * v
+    low = y <= SKIRT_MM
+    if not low.any():
+        return hull, None
+    shell = inside & ~ndimage.binary_erosion(inside)
+    sidx = np.argwhere(shell)
+    shell_pts = o + sidx * v
+    high_pts = shell_pts[shell_pts[:, 1] > SKIRT_MM]
+    foot = o + idx[y <= y.min() + 2.0 * v] * v
+    radius = float(np.hypot(foot[:, 0], foot[:, 2]).max()) + PAPER_MARGIN_MM
+    shape = masks[0].shape
+    views: list[_View] = []
+    for img, m, u, T in zip(images_rgb, masks, unknown, Ts, strict=True):
+        w = _view(np.asarray(img), m | u, _splat(high_pts, K, T, shape), K, T, radius)
+        if w is None:
+            return hull, None
+        views.append(w)
+    k = _shadow_ratio(views)
+    if k is None:
+        return hull, None
+    shade = [w.paperlike & (w.ratio >= k - RATIO_TOL) for w in views]  # a shade of the paper: shadow to lit
+    # the object's own pixels where it stands low: held, under no high part, not a shade of the paper
+    own = [w.held & ~w.high & ~(w.paperlike & ((np.abs(w.ratio - k) <= RATIO_TOL) | (np.abs(w.ratio - 1.0) <= LIT_TOL)))
+           for w in views]
+    Hs = [plane_homography(K, T) for T in Ts]
+    nbrs = _neighbours(camera_azimuths_deg(Ts))
+    # every view's verdict on each plane point, on a raster of the plane round the foot
+    n = int(2 * np.ceil(radius * PLANE_PX_PER_MM) + 1)
+    to_plane = [Hm @ raster_to_table(n, PLANE_PX_PER_MM) for Hm in Hs]
+    own_n = np.zeros((n, n), np.float32)
+    seen_n = np.zeros((n, n), np.float32)
+    for w, ow, M in zip(views, own, to_plane, strict=True):
+        flags = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
+        own_n += cv2.warpPerspective(ow.astype(np.uint8), M, (n, n), flags=flags, borderValue=0)
+        seen_n += cv2.warpPerspective((~w.high).astype(np.uint8), M, (n, n), flags=flags, borderValue=0)
+    # a shadow's plane point is the object's own in few of the views that see it; a low part's, in many
+    plain = ((own_n <= MAX_OWN_SHARE * seen_n) & (seen_n > 0)).astype(np.uint8)
+    low_idx = idx[low]
+    low_pts = o + low_idx * v
+    votes = np.zeros(len(low_pts), np.int32)
+    k3 = np.ones((3, 3), np.uint8)
+    released = []
+    for i, w in enumerate(views):
+        R = w.held & ~w.high & w.near & w.paperlike & (np.abs(w.ratio - k) <= RATIO_TOL)
+        R = cv2.erode(R.astype(np.uint8), k3) > 0
+        R &= cv2.warpPerspective(plain, np.linalg.inv(to_plane[i]), (shape[1], shape[0]),
+                                 flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderValue=0) > 0
+        if not nbrs[i]:
+            R[:] = False
+        both = np.ones(shape, bool)
+        for j in nbrs[i]:  # the plane point behind each pixel, in the view next to it: the object's own there?
+            M = Hs[j] @ np.linalg.inv(Hs[i])
+            both &= cv2.warpPerspective(own[j].astype(np.uint8), M, (shape[1], shape[0]),
+                                        flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP) > 0
+        R &= ~both
+        released.append(R)
+        if R.any():
+            votes += _lookup(R, low_pts, K, Ts[i])
+    carve = votes >= MIN_VOTES
+    if not carve.any():
+        return hull, None
+    cidx = low_idx[carve]
+    new = vals.copy()
+    new[tuple(cidx.T)] = -0.5 * v
+    # the guard: the object's own silhouette pixels must keep a voxel behind them
+    after = new > 0
+    after_shell = o + np.argwhere(after & ~ndimage.binary_erosion(after)) * v
+    cpts = o + cidx * v
+    restore = np.zeros(len(cidx), bool)
+    for i, (w, s, o_, T) in enumerate(zip(views, shade, own, Ts, strict=True)):
+        beside = cv2.dilate(released[i].astype(np.uint8), np.ones((2 * PENUMBRA_PX + 1,) * 2, np.uint8)) > 0
+        forgive = (cv2.dilate(released[i].astype(np.uint8), np.ones((5, 5), np.uint8)) > 0) | (w.near & ~o_) \
+            | (beside & s)
+        lost = masks[i] & ~forgive & _splat(shell_pts, K, T, shape) & ~_splat(after_shell, K, T, shape)
+        if lost.any():
+            restore |= _lookup(cv2.dilate(lost.astype(np.uint8), k3) > 0, cpts, K, T)
+    if restore.any():
+        r = cidx[restore]
+        new[tuple(r.T)] = vals[tuple(r.T)]
+        cidx = cidx[~restore]
+        if not len(cidx):
+            return hull, None
+    # pieces the carving cut loose: crumbs go, a part of the object means the carving cut it
+    lab, n = ndimage.label(new > 0)
+    sizes = np.bincount(lab.ravel(), minlength=n + 1)
+    sizes[0] = 0
+    big = int(np.argmax(sizes))
+    if n > 1:
+        lab0, _ = ndimage.label(inside)
+        labels, first = np.unique(lab.ravel(), return_index=True)
+        parent = np.zeros(n + 1, np.int64)
+        parent[labels] = lab0.ravel()[first]  # carving only removes: each piece lies in one piece of before
+        cut = (parent == parent[big]) & (np.arange(n + 1) != big) & (np.arange(n + 1) > 0)
+        if (sizes[cut] >= SMALL_PIECE * sizes[big]).any():
+            return hull, None
+        crumbs = cut[lab]
+        new[crumbs] = np.minimum(new[crumbs], -0.5 * v)
+    if not (lab[:, : int(idx[:, 1].min()) + 2, :] == big).any():
+        return hull, None  # the object no longer stands on the table: its foot was taken for the shadow
+    carved_n = int(inside.sum() - (new > 0).sum())
+    if carved_n <= 0:
+        return hull, None
+    out = VoxelHull(values=new.astype(np.float32), origin_table=hull.origin_table, voxel_mm=hull.voxel_mm,
+                    meta=dict(hull.meta))
+    return out, Skirt(ratio=k, volume_mm3=carved_n * v ** 3, views=int(sum(r.any() for r in released)))

@@ -1,0 +1,135 @@
+"""Cast shadows (recon.shadows): the skirt a key light's shadow, held in every view's silhouette, leaves under a
+white teapot-like body's overhanging belly is carved; the body and its foot are kept; silhouettes without the
+shadow carve nothing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from synthetic_images import turntable_ring
+
+from recon.carving import carve_hull
+from recon.shadows import carve_cast_shadows
+
+W, H, F_PX = 320, 240, 420.0
+K = np.array([[F_PX, 0.0, (W - 1) / 2], [0.0, F_PX, (H - 1) / 2], [0.0, 0.0, 1.0]])
+BELLY_C, BELLY_R = np.array([0.0, 30.0, 0.0]), 26.0  # a ball whose lowest point is 4 mm above the table ...
+FOOT_R, FOOT_H = 12.0, 6.0  # ... resting on a foot
+L_CAM = np.array([0.25, -0.8, -0.55])  # towards the key light, camera frame (up and behind the camera)
+AMBIENT, DIFFUSE = 0.4, 0.6
+
+
+def _rays(T):
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    d = np.stack([u, v, np.ones_like(u)], -1).reshape(-1, 3).astype(float) @ np.linalg.inv(K).T @ T[:3, :3]
+    return -T[:3, :3].T @ T[:3, 3], d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _ball(o, d):
+    """Distance along rays (N, 3) from points ``o`` ((3,) or (N, 3)) to the belly (inf where they miss)."""
+    oc = o - BELLY_C
+    b = (d * oc).sum(-1)
+    disc = b * b - ((oc * oc).sum(-1) - BELLY_R ** 2)
+    t = -b - np.sqrt(np.maximum(disc, 0.0))
+    return np.where((disc >= 0) & (t > 0), t, np.inf)
+
+
+def _foot(o, d):
+    """Distance along the rays to the foot's side (an upright cylinder from the table up to FOOT_H)."""
+    o = np.broadcast_to(o, d.shape)
+    a = d[:, 0] ** 2 + d[:, 2] ** 2
+    b = 2 * (o[:, 0] * d[:, 0] + o[:, 2] * d[:, 2])
+    c = o[:, 0] ** 2 + o[:, 2] ** 2 - FOOT_R ** 2
+    disc = b * b - 4 * a * c
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = (-b - np.sqrt(np.maximum(disc, 0.0))) / (2 * a)
+    y = o[:, 1] + t * d[:, 1]
+    return np.where((disc >= 0) & (t > 0) & (y >= 0.0) & (y <= FOOT_H), t, np.inf)
+
+
+def _render(T_all, rng, with_shadow_in_mask: bool):
+    """White body on white paper under a key light fixed to the camera; (images, masks, unknown)."""
+    images, masks = [], []
+    for T in T_all:
+        o, d = _rays(T)
+        L = T[:3, :3].T @ (L_CAM / np.linalg.norm(L_CAM))  # the light turns with the camera about the table
+        tb, tf = _ball(o, d), _foot(o, d)
+        t = np.minimum(tb, tf)
+        p = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+        n = np.where((tb <= tf)[:, None], (p - BELLY_C) / BELLY_R, p * np.array([1.0, 0.0, 1.0]) / FOOT_R)
+        lit_obj = 0.85 * (AMBIENT * (0.55 + 0.45 * n[:, 1]) + DIFFUSE * np.clip(n @ L, 0.0, None))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tp = -o[1] / d[:, 1]
+        q = o + np.where(tp > 0, tp, 0.0)[:, None] * d  # the plane point each ray meets
+        Ls = np.tile(L, (len(d), 1))
+        shadowed = np.isfinite(_ball(q + 1e-6 * Ls, Ls)) | np.isfinite(_foot(q + 1e-6 * Ls, Ls))
+        paper = 0.9 * (AMBIENT + DIFFUSE * L[1] * ~shadowed)
+        on_paper = (tp > 0) & (np.hypot(q[:, 0], q[:, 2]) < 150.0)
+        obj = np.isfinite(t) & (t < np.where(tp > 0, tp, np.inf))
+        grey = 255.0 * np.where(obj, lit_obj, np.where(on_paper, paper, 0.2)) + rng.normal(0.0, 1.0, len(d))
+        rgb = np.clip(grey[:, None] * np.array([1.0, 0.99, 0.95]), 0, 255)
+        images.append(rgb.reshape(H, W, 3).astype(np.uint8))
+        held = obj | (with_shadow_in_mask & on_paper & shadowed & (np.hypot(q[:, 0], q[:, 2]) < 60.0))
+        masks.append(held.reshape(H, W))
+    masks = np.array(masks)
+    return images, masks, np.zeros_like(masks)
+
+
+def _hull(masks, T):
+    return carve_hull(masks, K, T, radius_mm=60.0, height_mm=70.0, resolution=96, max_rejections=0)
+
+
+def _inside(hull, pts):
+    idx = np.rint((pts - hull.origin_table) / hull.voxel_mm).astype(int)
+    on = ((idx >= 0) & (idx < hull.values.shape)).all(1)
+    out = np.zeros(len(pts), bool)
+    out[on] = hull.values[idx[on, 0], idx[on, 1], idx[on, 2]] > 0
+    return out
+
+
+def _points_in_body(margin: float, rng) -> np.ndarray:
+    """Points inside the belly and the foot, ``margin`` mm in from their surfaces."""
+    p = rng.uniform(-30.0, 60.0, (60000, 3))
+    p[:, 1] = rng.uniform(0.0, 56.0, len(p))
+    in_ball = np.linalg.norm(p - BELLY_C, axis=1) < BELLY_R - margin
+    r = np.hypot(p[:, 0], p[:, 2])
+    in_foot = (r < FOOT_R - margin) & (p[:, 1] > margin) & (p[:, 1] < FOOT_H)
+    return p[in_ball | in_foot]
+
+
+@pytest.fixture(scope="module")
+def scene():
+    T = turntable_ring(24, look_y_mm=25.0)
+    images, masks, unknown = _render(T, np.random.default_rng(0), with_shadow_in_mask=True)
+    return images, masks, unknown, T, _hull(masks, T)
+
+
+def test_the_skirt_under_an_overhang_is_carved_and_the_body_kept(scene):
+    images, masks, unknown, T, hull = scene
+    rng = np.random.default_rng(1)
+    # the paper under the belly, outside the foot: the skirt the held shadow left there
+    a = rng.uniform(0.0, 2 * np.pi, 4000)
+    r = rng.uniform(FOOT_R + 2.0, 20.0, len(a))
+    skirt = np.column_stack([r * np.cos(a), rng.uniform(0.5, 2.5, len(a)), r * np.sin(a)])
+    assert _inside(hull, skirt).mean() > 0.6  # the silhouettes left most of it (else the test tests nothing)
+    out, info = carve_cast_shadows(hull, images, masks, unknown, K, T)
+    assert info is not None
+    up = (T[0][:3, :3].T @ (L_CAM / np.linalg.norm(L_CAM)))[1]  # the light's height, table frame
+    assert abs(info.ratio - AMBIENT / (AMBIENT + DIFFUSE * up)) < 0.03  # shadowed paper over lit paper
+    assert _inside(out, skirt).mean() < 0.2
+    body = _points_in_body(1.5 * hull.voxel_mm, rng)
+    body = body[_inside(hull, body)]
+    assert _inside(out, body).mean() > 0.999
+    assert (out.values > 0).sum() < (hull.values > 0).sum()
+
+
+def test_silhouettes_without_the_shadow_leave_nothing_to_carve():
+    T = turntable_ring(24, look_y_mm=25.0)
+    images, masks, unknown = _render(T, np.random.default_rng(2), with_shadow_in_mask=False)
+    hull = _hull(masks, T)
+    out, info = carve_cast_shadows(hull, images, masks, unknown, K, T)
+    body = _points_in_body(1.5 * hull.voxel_mm, np.random.default_rng(3))
+    assert _inside(hull, body).mean() > 0.95
+    assert _inside(out, body[_inside(hull, body)]).all()
+    carved = (hull.values > 0).sum() - (out.values > 0).sum()
+    assert carved <= 0.01 * (hull.values > 0).sum()
