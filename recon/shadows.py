@@ -27,6 +27,10 @@ A cast shadow is recognisable all the same:
   one way or another as it turns, whose shade matches the shadow's in a few
   views). And in one of the neighbouring views (up to ``NEIGHBOUR_DEG`` of the
   turn away) at least, it is not the object's own.
+* **It does not rise.** A pixel of the shadow's grey in an unbroken run of it
+  up its image column into the hull above ``SKIRT_MM`` is a face of the
+  object (a box's side turned from the light, where the ambient light gives
+  a side as much as the paper), not the plane.
 
 A hull voxel below ``SKIRT_MM`` whose pixel is such a shadow in at least
 ``MIN_VOTES`` views is carved. Then a guard: a silhouette pixel of the
@@ -58,7 +62,8 @@ RATIO_LO, RATIO_HI = 0.3, 0.85  # a shadow's grey over the lit paper's, the rang
 RATIO_BIN = 0.01  # ... in bins this wide
 RATIO_TOL = 0.04  # a pixel is in the shadow within this of the shadow's ratio ...
 LIT_TOL = 0.05  # ... and the lit paper within this of 1
-MIN_PEAK_SHARE = 0.08  # the shadow's bin holds at least this share of the candidate pixels
+MIN_PEAK_SHARE = 0.08  # the shadow's bin holds at least this share of the candidate pixels, ...
+MIN_SHADOW_PX = 500  # ... at least this many
 CHROMA_TOL = 0.012  # the paper's chromaticity (r, g, b over their sum) within this
 PAPER_MARGIN_MM = 30.0  # the lit paper is read on the plane this far round the hull's foot
 MIN_VOTES = 3  # a voxel is carved where this many views see a shadow through it
@@ -121,9 +126,10 @@ class _View:
     paperlike: np.ndarray  # the paper's chromaticity
     ratio: np.ndarray  # grey over the lit paper's
     near: np.ndarray  # the plane point lies on the paper round the foot
+    cover: np.ndarray  # the hull covers the pixel
 
 
-def _view(img, held, high, K, T, radius_mm) -> _View | None:
+def _view(img, held, high, cover, K, T, radius_mm) -> _View | None:
     r = _plane_radius(K, T, held.shape)
     near = r < radius_mm
     f = img.astype(np.float32)
@@ -137,13 +143,17 @@ def _view(img, held, high, K, T, radius_mm) -> _View | None:
         return None
     chroma = np.abs(f / np.maximum(f.sum(axis=-1, keepdims=True), 1.0) - paper / paper.sum()).max(axis=-1)
     ratio = cv2.medianBlur(grey, 3) / float(paper.mean())
-    return _View(held, high, chroma < CHROMA_TOL, ratio, near)
+    return _View(held, high, chroma < CHROMA_TOL, ratio, near, cover)
 
 
 def _shadow_ratio(views: list[_View]) -> float | None:
-    """The sequence's shadow ratio: the most common ratio of the candidate pixels, if common enough."""
-    vals = np.concatenate([w.ratio[w.held & ~w.high & w.near & w.paperlike] for w in views])
-    if len(vals) < 1000:
+    """The sequence's shadow ratio: the most common ratio of the held pixels the hull left without a voxel
+    behind them (a shadow one view held, which the others carved: not the object for sure), if common enough.
+
+    Not of every held pixel low down: a white box's side turned from the light has one grey in every view
+    (the ambient light's alone), as common as a shadow's."""
+    vals = np.concatenate([w.ratio[w.held & ~w.cover & w.near & w.paperlike] for w in views])
+    if len(vals) < MIN_SHADOW_PX:
         return None
     hist, edges = np.histogram(vals, bins=np.arange(RATIO_LO, RATIO_HI + 0.5 * RATIO_BIN, RATIO_BIN))
     near3 = np.convolve(hist, np.ones(3), mode="same")  # a peak split between two bins counts whole
@@ -152,6 +162,20 @@ def _shadow_ratio(views: list[_View]) -> float | None:
         return None
     centre = edges[k] + 0.5 * RATIO_BIN
     return float(np.median(vals[np.abs(vals - centre) <= 1.5 * RATIO_BIN]))
+
+
+def _rising(grey: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """(h, w) bool: the pixels of ``grey`` in an unbroken vertical run of it (an image column) that reaches a
+    pixel of ``high``: a face of that grey rising past the skirt's height (a side, not the plane)."""
+    H, W = grey.shape
+    start = grey.copy()
+    start[1:] &= ~grey[:-1]
+    run = np.cumsum(start, axis=0) + np.arange(W)[None, :] * (H + 1)  # a label per run of each column
+    run = np.where(grey, run, 0)
+    hit = np.zeros(W * (H + 1) + H + 2, bool)
+    hit[run[grey & high]] = True
+    hit[0] = False
+    return hit[run]
 
 
 def _neighbours(az: np.ndarray) -> list[list[int]]:
@@ -196,7 +220,7 @@ def carve_cast_shadows(hull: VoxelHull, images_rgb, masks: np.ndarray, unknown: 
     shape = masks[0].shape
     views: list[_View] = []
     for img, m, u, T in zip(images_rgb, masks, unknown, Ts, strict=True):
-        w = _view(np.asarray(img), m | u, _splat(high_pts, K, T, shape), K, T, radius)
+        w = _view(np.asarray(img), m | u, _splat(high_pts, K, T, shape), _splat(shell_pts, K, T, shape), K, T, radius)
         if w is None:
             return hull, None
         views.append(w)
@@ -226,7 +250,9 @@ def carve_cast_shadows(hull: VoxelHull, images_rgb, masks: np.ndarray, unknown: 
     k3 = np.ones((3, 3), np.uint8)
     released = []
     for i, w in enumerate(views):
-        R = w.held & ~w.high & w.near & w.paperlike & (np.abs(w.ratio - k) <= RATIO_TOL)
+        grey = w.held & w.paperlike & (np.abs(w.ratio - k) <= RATIO_TOL)
+        R = grey & ~w.high & w.near
+        R &= ~_rising(grey, w.high)  # a face of the shadow's grey rising past SKIRT_MM is the object's
         R = cv2.erode(R.astype(np.uint8), k3) > 0
         R &= cv2.warpPerspective(plain, np.linalg.inv(to_plane[i]), (shape[1], shape[0]),
                                  flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderValue=0) > 0
@@ -256,7 +282,7 @@ def carve_cast_shadows(hull: VoxelHull, images_rgb, masks: np.ndarray, unknown: 
         beside = cv2.dilate(released[i].astype(np.uint8), np.ones((2 * PENUMBRA_PX + 1,) * 2, np.uint8)) > 0
         forgive = (cv2.dilate(released[i].astype(np.uint8), np.ones((5, 5), np.uint8)) > 0) | (w.near & ~o_) \
             | (beside & s)
-        lost = masks[i] & ~forgive & _splat(shell_pts, K, T, shape) & ~_splat(after_shell, K, T, shape)
+        lost = masks[i] & ~forgive & w.cover & ~_splat(after_shell, K, T, shape)
         if lost.any():
             restore |= _lookup(cv2.dilate(lost.astype(np.uint8), k3) > 0, cpts, K, T)
     if restore.any():
