@@ -105,18 +105,20 @@ def _lookup(img: np.ndarray, pts: np.ndarray, K, T) -> np.ndarray:
     return out
 
 
-def _plane_radius(K, T, shape) -> np.ndarray:
-    """(h, w) float32: the distance from the table's axis of the plane point each pixel's ray meets (inf
-    where it meets none in front of the camera)."""
+def _plane_radius(K, T, shape, step: int = 4) -> np.ndarray:
+    """(h, w) float32: the distance from the table's axis of the plane point each pixel's ray meets (1e9 where
+    it meets none in front of the camera); computed every ``step`` pixels and interpolated (it is smooth)."""
     H, W = shape
     T = np.asarray(T, float)
-    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    u, v = np.meshgrid(np.arange(0, W + step, step, dtype=np.float64), np.arange(0, H + step, step, dtype=np.float64))
     d = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T @ T[:3, :3]  # ray directions, table frame
     c = -T[:3, :3].T @ T[:3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
         lam = -c[1] / d[..., 1]
         r = np.hypot(c[0] + lam * d[..., 0], c[2] + lam * d[..., 2])
-    return np.where((lam > 0) & np.isfinite(r), r, np.inf).astype(np.float32)
+    r = np.where((lam > 0) & np.isfinite(r), np.minimum(r, 1e9), 1e9).astype(np.float32)
+    full = cv2.resize(r, (r.shape[1] * step, r.shape[0] * step), interpolation=cv2.INTER_LINEAR)
+    return full[:H, :W]
 
 
 @dataclass
