@@ -260,3 +260,12 @@ def render_target_photo(spec: TargetSpec, K, T_cam_table, size, *, rng: np.rando
         ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
         out = cv2.imdecode(buf, cv2.IMREAD_COLOR)
     return SyntheticPhoto(image=out, K=K, T_cam_table=T, occluder_mask=occ_mask)
+
+
+def hull_holds(hull, pts: np.ndarray) -> np.ndarray:
+    """(N,) bool: the points' voxels are inside the hull (``recon.types.VoxelHull``; False off its grid)."""
+    idx = np.rint((pts - hull.origin_table) / hull.voxel_mm).astype(int)
+    on = ((idx >= 0) & (idx < hull.values.shape)).all(1)
+    out = np.zeros(len(pts), bool)
+    out[on] = hull.values[idx[on, 0], idx[on, 1], idx[on, 2]] > 0
+    return out

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from synthetic_images import turntable_ring
+from synthetic_images import hull_holds, turntable_ring
 
 from recon.carving import carve_hull
 from recon.faces import carve_above_faces, find_faces
@@ -121,15 +121,6 @@ def _hull(masks, T):
     return carve_hull(masks, K, T, radius_mm=60.0, height_mm=90.0, resolution=128, max_rejections=0)
 
 
-def _inside(hull, pts):
-    """(N,) bool: the points' voxels are inside the hull (False off its grid)."""
-    idx = np.rint((pts - hull.origin_table) / hull.voxel_mm).astype(int)
-    on = ((idx >= 0) & (idx < hull.values.shape)).all(1)
-    out = np.zeros(len(pts), bool)
-    out[on] = hull.values[idx[on, 0], idx[on, 1], idx[on, 2]] > 0
-    return out
-
-
 @pytest.fixture(scope="module")
 def box_scene():
     T = _cameras()
@@ -144,15 +135,15 @@ def test_a_white_boxs_flat_top_is_found_and_the_roof_over_it_carved(box_scene):
     assert faces[0].area_mm2 > 0.6 * 60.0 * 40.0
     # the silhouettes' hull keeps a roof over the top: ~8 mm high over its middle
     column = np.array([[0.0, y, 0.0] for y in np.arange(41.0, 60.0, 0.5)])
-    assert _inside(hull, column).sum() * 0.5 > 6.0
+    assert hull_holds(hull, column).sum() * 0.5 > 6.0
     carved, done = carve_above_faces(hull, images, masks, K, T)
     assert len(done) == 1 and done[0][1] > 3000.0  # mm^3
-    assert not _inside(carved, column[column[:, 1] > 41.5]).any()
+    assert not hull_holds(carved, column[column[:, 1] > 41.5]).any()
     # nothing of the box is carved: every voxel inside it (a voxel in from its faces) stays
     v = hull.voxel_mm
     g = np.stack(np.meshgrid(*[np.arange(lo + v, hi - v, v) for lo, hi in zip(BOX_LO, BOX_HI, strict=True)],
                              indexing="ij"), -1).reshape(-1, 3)
-    assert _inside(hull, g).all() and _inside(carved, g).all()
+    assert hull_holds(hull, g).all() and hull_holds(carved, g).all()
     # the carved hull is closer to the box: its volume over the true one
     true = np.prod(BOX_HI - BOX_LO)
     assert (carved.values > 0).sum() * v ** 3 < (hull.values > 0).sum() * v ** 3 - 3000.0
@@ -199,17 +190,17 @@ def test_the_tent_over_a_white_boxs_sides_is_carved_between_its_corners(box_scen
     tents = np.array([[0.0, y, BOX_HI[2] + 1.0] for y in (10.0, 20.0)]
                      + [[0.0, y, BOX_LO[2] - 1.0] for y in (10.0, 20.0)]
                      + [[BOX_HI[0] + 1.0, y, 0.0] for y in (10.0, 20.0, 30.0)])
-    assert _inside(hull, tents).all()  # the silhouettes leave a tent over every side
+    assert hull_holds(hull, tents).all()  # the silhouettes leave a tent over every side
     flat, sides = flatten_sides(hull, images, masks, K, T)
     assert sides and sum(s.volume_mm3 for s in sides) > 2000.0
-    assert not _inside(flat, tents).any()
+    assert not hull_holds(flat, tents).any()
     v = hull.voxel_mm
     g = np.stack(np.meshgrid(*[np.arange(lo + v, hi - v, v) for lo, hi in zip(BOX_LO, BOX_HI, strict=True)],
                              indexing="ij"), -1).reshape(-1, 3)
-    assert _inside(flat, g).all()
+    assert hull_holds(flat, g).all()
     # the mesh's surface (the values' zero) lies on the sides: a side's middle point is inside by under a voxel
     on = np.array([[0.0, 20.0, BOX_HI[2] - 0.5 * v], [0.0, 20.0, BOX_HI[2] + 1.0 * v]])
-    assert _inside(flat, on[:1]).all() and not _inside(flat, on[1:]).any()
+    assert hull_holds(flat, on[:1]).all() and not hull_holds(flat, on[1:]).any()
 
 
 @pytest.mark.parametrize("shape", ["sphere", "lid"])

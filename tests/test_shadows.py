@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from synthetic_images import turntable_ring
+from synthetic_images import hull_holds, turntable_ring
 
 from recon.carving import carve_hull
 from recon.shadows import carve_cast_shadows
@@ -102,14 +102,6 @@ def _hull(masks, T):
     return carve_hull(masks, K, T, radius_mm=60.0, height_mm=70.0, resolution=96, max_rejections=0)
 
 
-def _inside(hull, pts):
-    idx = np.rint((pts - hull.origin_table) / hull.voxel_mm).astype(int)
-    on = ((idx >= 0) & (idx < hull.values.shape)).all(1)
-    out = np.zeros(len(pts), bool)
-    out[on] = hull.values[idx[on, 0], idx[on, 1], idx[on, 2]] > 0
-    return out
-
-
 def _points_in_body(margin: float, rng) -> np.ndarray:
     """Points inside the belly and the foot, ``margin`` mm in from their surfaces."""
     p = rng.uniform(-30.0, 60.0, (60000, 3))
@@ -134,15 +126,15 @@ def test_the_skirt_under_an_overhang_is_carved_and_the_body_kept(scene):
     a = rng.uniform(0.0, 2 * np.pi, 4000)
     r = rng.uniform(FOOT_R + 2.0, 20.0, len(a))
     skirt = np.column_stack([r * np.cos(a), rng.uniform(0.5, 2.5, len(a)), r * np.sin(a)])
-    assert _inside(hull, skirt).mean() > 0.6  # the silhouettes left most of it (else the test tests nothing)
+    assert hull_holds(hull, skirt).mean() > 0.6  # the silhouettes left most of it (else the test tests nothing)
     out, info = carve_cast_shadows(hull, images, masks, unknown, K, T)
     assert info is not None
     up = (T[0][:3, :3].T @ (L_CAM / np.linalg.norm(L_CAM)))[1]  # the light's height, table frame
     assert abs(info.ratio - AMBIENT / (AMBIENT + DIFFUSE * up)) < 0.03  # shadowed paper over lit paper
-    assert _inside(out, skirt).mean() < 0.2
+    assert hull_holds(out, skirt).mean() < 0.2
     body = _points_in_body(1.5 * hull.voxel_mm, rng)
-    body = body[_inside(hull, body)]
-    assert _inside(out, body).mean() > 0.999
+    body = body[hull_holds(hull, body)]
+    assert hull_holds(out, body).mean() > 0.999
     assert (out.values > 0).sum() < (hull.values > 0).sum()
 
 
@@ -152,8 +144,8 @@ def test_silhouettes_without_the_shadow_leave_nothing_to_carve():
     hull = _hull(masks, T)
     out, info = carve_cast_shadows(hull, images, masks, unknown, K, T)
     body = _points_in_body(1.5 * hull.voxel_mm, np.random.default_rng(3))
-    assert _inside(hull, body).mean() > 0.95
-    assert _inside(out, body[_inside(hull, body)]).all()
+    assert hull_holds(hull, body).mean() > 0.95
+    assert hull_holds(out, body[hull_holds(hull, body)]).all()
     carved = (hull.values > 0).sum() - (out.values > 0).sum()
     assert carved <= 0.01 * (hull.values > 0).sum()
 
@@ -169,6 +161,6 @@ def test_a_boxs_side_of_the_shadows_grey_is_kept():
     rng = np.random.default_rng(5)
     m = 1.5 * hull.voxel_mm
     box = rng.uniform(BOX_LO + m, BOX_HI - m, (20000, 3))
-    box = box[_inside(hull, box)]
+    box = box[hull_holds(hull, box)]
     assert len(box) > 15000
-    assert _inside(out, box).mean() > 0.999
+    assert hull_holds(out, box).mean() > 0.999
