@@ -295,6 +295,8 @@ def carve_cast_shadows(hull: VoxelHull, images_rgb, masks: np.ndarray, unknown: 
             return hull, None
     # pieces the carving cut loose: crumbs go, a part of the object means the carving cut it
     lab, n = ndimage.label(new > 0)
+    if n == 0:
+        return hull, None  # an object lower than SKIRT_MM, all of it taken for the shadow
     sizes = np.bincount(lab.ravel(), minlength=n + 1)
     sizes[0] = 0
     big = int(np.argmax(sizes))
