@@ -21,6 +21,7 @@ __all__ = [
     "plane_homography",
     "circle_conic",
     "project_points",
+    "values_at_points",
     "circle_points_table",
     "camera_centre_table",
     "angle_between_deg",
@@ -118,6 +119,17 @@ def project_points(K: np.ndarray, T_cam_table: np.ndarray, pts_table: np.ndarray
     pts_cam = pts @ T_cam_table[:3, :3].T + T_cam_table[:3, 3]
     uvw = pts_cam @ np.asarray(K, float).T
     return uvw[:, :2] / uvw[:, 2:3]
+
+
+def values_at_points(K: np.ndarray, T_cam_table: np.ndarray, pts_table: np.ndarray, image: np.ndarray) -> np.ndarray:
+    """(N,) ``image``'s value at the pixel nearest each point of ``pts_table`` (N, 3) mm (:func:`project_points`);
+    zero (False) where that pixel is off the image."""
+    H, W = image.shape[:2]
+    uv = np.rint(project_points(K, T_cam_table, pts_table)).astype(np.int64)
+    ok = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < W) & (uv[:, 1] < H)
+    out = np.zeros(len(uv), image.dtype)
+    out[ok] = image[uv[ok, 1], uv[ok, 0]]
+    return out
 
 
 def circle_points_table(radius_mm: float, n: int = 360) -> np.ndarray:

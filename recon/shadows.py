@@ -49,7 +49,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from calib.camera import plane_homography, project_points
+from calib.camera import plane_homography, project_points, values_at_points
 
 from .silhouette_checks import camera_azimuths_deg
 from .silhouette_plates import raster_to_table
@@ -93,16 +93,6 @@ def _splat(pts: np.ndarray, K, T, shape) -> np.ndarray:
         cov[uv[ok, 1], uv[ok, 0]] = 1
     cov = cv2.dilate(cov, np.ones((3, 3), np.uint8))
     return cv2.morphologyEx(cov, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)) > 0
-
-
-def _lookup(img: np.ndarray, pts: np.ndarray, K, T) -> np.ndarray:
-    """(N,) the map's value at each point's pixel (False off the image)."""
-    H, W = img.shape[:2]
-    uv = np.rint(project_points(K, T, pts)).astype(int)
-    ok = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < W) & (uv[:, 1] < H)
-    out = np.zeros(len(pts), bool)
-    out[ok] = img[uv[ok, 1], uv[ok, 0]]
-    return out
 
 
 def _plane_radius(K, T, shape, step: int = 4) -> np.ndarray:
@@ -268,7 +258,7 @@ def carve_cast_shadows(hull: VoxelHull, images_rgb, masks: np.ndarray, unknown: 
         R &= ~both
         released.append(R)
         if R.any():
-            votes += _lookup(R, low_pts, K, Ts[i])
+            votes += values_at_points(K, Ts[i], low_pts, R)
     carve = votes >= MIN_VOTES
     if not carve.any():
         return hull, None
@@ -286,7 +276,7 @@ def carve_cast_shadows(hull: VoxelHull, images_rgb, masks: np.ndarray, unknown: 
             | (beside & s)
         lost = masks[i] & ~forgive & w.cover & ~_splat(after_shell, K, T, shape)
         if lost.any():
-            restore |= _lookup(cv2.dilate(lost.astype(np.uint8), k3) > 0, cpts, K, T)
+            restore |= values_at_points(K, T, cpts, cv2.dilate(lost.astype(np.uint8), k3) > 0)
     if restore.any():
         r = cidx[restore]
         new[tuple(r.T)] = vals[tuple(r.T)]

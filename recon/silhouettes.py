@@ -123,7 +123,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calib.camera import as_K, as_poses, camera_centre_table, project_points
+from calib.camera import as_K, as_poses, camera_centre_table, project_points, values_at_points
 from calib.target import TargetSpec
 
 from .silhouette_checks import camera_azimuths_deg, fill_gaps, frame_status
@@ -404,15 +404,11 @@ _DEEP_MAX_VOXELS = 2_000_000  # ... the finer voxels: at most this many (coarser
 def _not_held_counts(held: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, pts: np.ndarray):
     """For points ``pts`` (n, 3) table mm: how many views see them and do not hold them (``held``, V, H, W), and
     the first and last such view (-1: none)."""
-    V, H, W = held.shape
     count = np.zeros(len(pts), np.int16)
     first = np.full(len(pts), -1, np.int16)
     last = np.full(len(pts), -1, np.int16)
-    for j in range(V):
-        uv = np.rint(project_points(K, T_cam_table[j], pts)).astype(np.int64)
-        seen = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
-        free = np.zeros(len(pts), bool)
-        free[seen] = ~held[j][uv[seen, 1], uv[seen, 0]]
+    for j in range(len(held)):
+        free = values_at_points(K, T_cam_table[j], pts, ~held[j])  # a view not seeing a point holds it
         count += free
         first[free & (first < 0)] = j
         last[free] = j

@@ -12,6 +12,7 @@ from calib.camera import (
     plane_homography,
     project_points,
     rotation_from_normal,
+    values_at_points,
 )
 
 
@@ -68,3 +69,18 @@ def test_look_at_centres_the_target_with_table_up_on_top():
     rolled = look_at([300.0, 200.0, -100.0], [0.0, 30.0, 0.0], roll_rad=np.pi / 2)
     t2, b2 = project_points(K, rolled, np.array([[0.0, 60.0, 0.0], [0.0, 0.0, 0.0]]))
     assert abs(t2[1] - b2[1]) < 1e-6  # a quarter roll turns the vertical sideways
+
+
+def test_values_at_points_reads_the_nearest_pixel_and_zero_off_the_image():
+    """A point projecting onto pixel (u, v) reads image[v, u]; one projecting off the image reads zero (False)."""
+    K = np.array([[100.0, 0.0, 9.5], [0.0, 100.0, 7.5], [0.0, 0.0, 1.0]])
+    T = np.eye(4)
+    T[2, 3] = 500.0  # the table origin 500 mm in front of the camera
+    image = np.arange(16 * 20, dtype=np.int32).reshape(16, 20) + 1  # no zero on the image
+    pts = np.array([[0.0, 0.0, 0.0], [12.0, -9.0, 0.0], [200.0, 0.0, 0.0], [0.0, -200.0, 0.0]])
+    uv = np.rint(project_points(K, T, pts[:2])).astype(int)
+    got = values_at_points(K, T, pts, image)
+    assert got.dtype == image.dtype
+    assert list(got[:2]) == [image[v, u] for u, v in uv]
+    assert list(got[2:]) == [0, 0]
+    assert values_at_points(K, T, pts, image > 0).tolist() == [True, True, False, False]
