@@ -22,7 +22,7 @@ import numpy as np
 from calib.camera import camera_centre_table, plane_homography
 
 from .silhouette_checks import camera_azimuths_deg
-from .silhouette_doubt import Plate, colour_dist, colour_gradient, in_set, plate_envelope, range_dist
+from .silhouette_doubt import Plate, colour_dist, colour_gradient, in_set, plate_envelope, range_dist, shading_ramp
 
 __all__ = ["Plates", "TablePlate", "rectify_to_table", "raster_to_table", "median_frames", "below_horizon",
            "table_plate", "PLANE_PX_PER_MM", "PLATE_BORDER_MM", "TRUST", "STRONG", "untrust_enclosed"]
@@ -239,6 +239,47 @@ def untrust_enclosed(trust: np.ndarray, plate: np.ndarray, tau: float) -> np.nda
     return (keep[lab] & (t > 0)).astype(np.uint8)
 
 
+SHADE_LO, SHADE_HI = 0.35, 0.8  # untrust_shade: a plain texel this dark against the paper's grey (ink: darker) ...
+SHADE_MIN_DN = 4.0  # ... and at least this many tau darker than it
+
+
+def untrust_shade(trust: np.ndarray, plate: np.ndarray, tau: float, radius_px: float) -> np.ndarray:
+    """The table plate's trust (uint8) less its plain mid-grey shades that do not reach the volume's rim.
+
+    A room light's shadow on the paper stays in the room while the table
+    turns: in the table frame it moves, and it is never one trusted plate.
+    What shows one grey at the same point of the table in every frame turns
+    with the table: an object standing there or its contact shadow. The plate
+    under and behind a white box in a dark room, its sides lit by the ambient
+    light alone, was their grey in every view (0.63 of the paper's), trusted,
+    and explained the lower half of the sides away as paper wherever they
+    showed it (4.45 % of the diagonal; seed 4 at 640 x 480). Neither is the
+    paper as a view sees it: trusted texels darker than ``SHADE_HI`` of the
+    paper's grey (the trusted plate's 90th percentile) and ``SHADE_MIN_DN tau``
+    or more below it, yet lighter than ``SHADE_LO`` of it (printed ink is
+    darker, and textured: within a pixel of its dark :func:`plate_ink` they stay), in
+    pieces (8-connected) inside ``radius_px`` of the axis (a turntable's rim
+    of its own grey turns with it too, and is no object), are no longer
+    trusted. A view then tells such a shade from the object by what joins it
+    to the mask (the doubt), as an island's (:func:`untrust_enclosed`).
+    """
+    t = trust > 0
+    if not t.any():
+        return trust
+    g = cv2.cvtColor(plate, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    ref = float(np.percentile(g[t], 90))
+    ink = cv2.dilate((plate_ink(plate, tau) & (g < SHADE_LO * ref)).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    shade = t & ~ink & (g >= SHADE_LO * ref) & (g <= SHADE_HI * ref) & (g <= ref - SHADE_MIN_DN * tau)
+    if not shade.any():
+        return trust
+    n, lab = cv2.connectedComponents(shade.astype(np.uint8), connectivity=8)
+    rim = np.unique(lab[raster_radius_px(len(g)) >= radius_px])
+    inner = np.ones(n, bool)
+    inner[rim] = False
+    inner[0] = False
+    return (t & ~inner[lab]).astype(np.uint8)
+
+
 GROUND_CHROMA = 0.08  # a printed ground is coloured when its chromaticity is this far from grey's (1/3 each)
 GROUND_SHARE = 0.5  # ... and when this share of the paper's plain texels has its chromaticity
 _GROUND_TOL = 0.04  # chromaticity tolerance of a ground pixel (plus the noise's share at its brightness)
@@ -326,38 +367,6 @@ def reached_from_outside(room: np.ndarray, inside: np.ndarray, room_colours: np.
     return hit[lab] | textured
 
 
-_RAMP_WIN = 9  # shading_ramp's window, pixels
-_RAMP_RESIDUAL = 0.5  # ... a plane fits the window's colours within this share of tau (RMS)
-_RAMP_RISE = 2.0  # ... and rises across it by at least this many tau
-
-
-def shading_ramp(img: np.ndarray, tau: float) -> np.ndarray:
-    """(h, w) bool: where a tilted plane in x, y fits ``img`` over a 9 x 9 window: within ``tau / 2`` RMS in each
-    channel, rising by ``2 tau`` or more across the window in one of them.
-
-    A lit curved surface shades smoothly (the ramp of a sphere's grey from its
-    lit cap to its shaded side); a texture (wood grain, clutter) or a step (an
-    outline, the horizon) leaves a residual the size of its contrast, and a
-    plain wall has no rise.
-    """
-    k = _RAMP_WIN
-    r = np.arange(k, dtype=np.float32) - (k - 1) / 2
-    kx = np.tile(r, (k, 1)) / (k * k)
-    sxx = float((r ** 2).mean())
-    worst = np.zeros(img.shape[:2], np.float32)
-    rise = np.zeros(img.shape[:2], np.float32)
-    for c in range(img.shape[2]):
-        ch = img[..., c].astype(np.float32)
-        mean = cv2.blur(ch, (k, k), borderType=cv2.BORDER_REFLECT)
-        sq = cv2.blur(ch * ch, (k, k), borderType=cv2.BORDER_REFLECT)
-        # filter2D correlates: the window's mean of x * I, x relative to its centre; / mean(x^2): the slope
-        gx = cv2.filter2D(ch, -1, kx, borderType=cv2.BORDER_REFLECT) / sxx
-        gy = cv2.filter2D(ch, -1, kx.T, borderType=cv2.BORDER_REFLECT) / sxx
-        worst = np.maximum(worst, sq - mean * mean - (gx * gx + gy * gy) * sxx)
-        rise = np.maximum(rise, np.hypot(gx, gy) * (k - 1))
-    return (worst < (_RAMP_RESIDUAL * tau) ** 2) & (rise >= _RAMP_RISE * tau)
-
-
 class Plates:
     """Room plate (image) and table plate (rectified plane), with where they are trusted."""
 
@@ -382,6 +391,8 @@ class Plates:
         self.table, self.table_lo, self.table_hi, self.table_trust = tp.plate, tp.lo, tp.hi, tp.trust
         self._table_arcs = tp
         trust = untrust_enclosed(self.table_trust, self.table, tau)
+        # and its shades that turn with the table (an object's face standing there: untrust_shade)
+        trust = untrust_shade(trust, self.table, tau, radius_mm * PLANE_PX_PER_MM)
         # an island is no room's either: a static object there (a body of revolution) is the room plate too
         self.table_island = (self.table_trust > trust).astype(np.uint8)
         self.table_trust = trust

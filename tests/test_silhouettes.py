@@ -969,6 +969,72 @@ def test_untrust_enclosed_takes_pale_shading_for_no_ink():
     assert out[inked].all()
 
 
+def test_untrust_shade_drops_a_grey_that_turns_with_the_table():
+    """The table plate under a white box in a dark room is its sides' grey in every view (0.63 of the
+    paper's): trusted, it would explain the sides away as paper. A plain mid-grey piece inside the volume
+    loses its trust; the paper, black ink (darker, textured) and a grey rim that reaches the volume's edge
+    (a turntable's own rim, which turns with it too) keep theirs."""
+    from recon.silhouette_plates import untrust_shade
+
+    n = 161
+    rng = np.random.default_rng(7)
+    plate = np.clip(np.full((n, n, 3), 230.0) + rng.normal(0.0, 1.0, (n, n, 3)), 0, 255).astype(np.uint8)
+    box = (slice(55, 105), slice(50, 110))
+    plate[box] = 145  # the box's sides, seen from every azimuth
+    plate[20:24, 30:130] = 20  # a stroke of black ink
+    plate[:, :6] = 120  # the rim's grey, out to the raster's edge
+    trust = np.ones((n, n), np.uint8)
+    out = untrust_shade(trust, plate, 6.0, radius_px=70.0)
+    assert out.dtype == np.uint8
+    assert not out[box].any()
+    assert out[20:24, 30:130].all() and out[:, :6].all()
+    paper = np.ones((n, n), bool)
+    paper[box] = False
+    assert out[paper].all()
+    # a paper whose grey varies little (vignetting, a soft light) keeps all of it
+    soft = np.clip(230.0 - 0.15 * np.arange(n)[None, :, None].repeat(n, 0).repeat(3, 2), 0, 255).astype(np.uint8)
+    assert untrust_shade(trust, soft, 6.0, radius_px=70.0).all()
+
+
+def test_hue_unlike_tells_a_grain_from_shading():
+    """Against a white mask's hues, a grey shade of the same white (its dull side) is not unlike, a brown
+    table's grain is, and a dark pixel (whose hue is noise) never is."""
+    from recon.silhouette_doubt import hue_unlike
+
+    img = np.zeros((40, 60, 3), np.uint8)
+    img[:, :20] = (200, 199, 195)  # the mask: a lit white body
+    img[:, 20:30] = (120, 119, 116)  # its shade
+    img[:, 30:45] = (107, 85, 64)  # wood
+    img[:, 45:] = (30, 22, 16)  # dark wood
+    mask = np.zeros((40, 60), bool)
+    mask[:, :20] = True
+    out = hue_unlike(img, mask)
+    assert not out[:, :30].any()
+    assert out[:, 30:45].all()
+    assert not out[:, 45:].any()
+    assert not hue_unlike(img, np.zeros_like(mask)).any()  # no mask: nothing to compare with
+
+
+def test_doubt_joins_through_a_ramp_of_shading_not_across_a_step():
+    """A white ball's underside falls ever more steeply from the mask's edge (up to 8 grey levels a pixel,
+    a 3 x 3 range over 2 tau): a smooth ramp, so the doubt joins it. A step of that size is an edge, and
+    stops it."""
+    from recon.silhouette_doubt import doubt_joined
+
+    h, w = 60, 80
+    x = np.arange(w, dtype=np.float32)[None, :].repeat(h, 0)
+    ramp = np.clip(200.0 - 0.2 * np.clip(x - 30, 0, None) ** 2, 40, 255)  # the mask up to x = 30, then the fall
+    step = np.where(x < 45, 200.0, 80.0)
+    mask = np.zeros((h, w), bool)
+    mask[:, :30] = True
+    doubtful = ~mask
+    paper = np.zeros_like(mask)
+    for grey, joined in ((ramp, True), (step, False)):
+        img = np.repeat(grey[..., None], 3, axis=2).astype(np.uint8)
+        out = doubt_joined(img, mask, doubtful, paper, 6.0)
+        assert bool(out[5:-5, 40:50].all()) is joined, grey[0, 28:50]
+
+
 def test_ink_is_reproduced_only_with_its_contrast():
     """The table plate's ink (a black ring's edge on white paper) seen in the photo is sure background; the
     same edge drawn at a tenth of its contrast (a white object's faint shading in front of it, correlated
@@ -1025,8 +1091,8 @@ def test_room_plate_does_not_vouch_for_a_static_head_shaded_through_the_walls_gr
     """A static head on the axis (a sphere, lit from above) seen against a grey wall: its shade ramps
     smoothly from light to dark through the wall's grey (150). The ramp is steep enough to count as
     texture, but a plane fits it where grain or a step would not: off the table, it is no room's."""
-    from recon.silhouette_doubt import colour_set
-    from recon.silhouette_plates import reached_from_outside, shading_ramp
+    from recon.silhouette_doubt import colour_set, shading_ramp
+    from recon.silhouette_plates import reached_from_outside
 
     rng = np.random.default_rng(1)
     room = np.full((120, 160, 3), 150.0)
