@@ -391,10 +391,11 @@ class Plates:
         self.table, self.table_lo, self.table_hi, self.table_trust = tp.plate, tp.lo, tp.hi, tp.trust
         self._table_arcs = tp
         trust = untrust_enclosed(self.table_trust, self.table, tau)
-        # and its shades that turn with the table (an object's face standing there: untrust_shade)
-        trust = untrust_shade(trust, self.table, tau, radius_mm * PLANE_PX_PER_MM)
         # an island is no room's either: a static object there (a body of revolution) is the room plate too
         self.table_island = (self.table_trust > trust).astype(np.uint8)
+        # and the shades that turn with the table (an object's face standing there: untrust_shade) are trusted
+        # by no view, nor made islands, whose plate the views on their own side would trust again
+        trust = untrust_shade(trust, self.table, tau, radius_mm * PLANE_PX_PER_MM)
         self.table_trust = trust
         self.ground = printed_ground(self.table, trust, radius_mm * PLANE_PX_PER_MM, tau)
         self.table_disc = (raster_radius_px(self.table.shape[0])
