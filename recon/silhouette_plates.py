@@ -240,7 +240,8 @@ def untrust_enclosed(trust: np.ndarray, plate: np.ndarray, tau: float) -> np.nda
 
 
 SHADE_LO, SHADE_HI = 0.35, 0.8  # untrust_shade: a plain texel this dark against the paper's grey (ink: darker) ...
-SHADE_MIN_DN = 4.0  # ... and at least this many tau darker than it
+SHADE_MIN_DN = 4.0  # ... and at least this many tau darker than it, in a piece over the axis (this near)
+SHADE_AXIS_PX = 3.0
 
 
 def untrust_shade(trust: np.ndarray, plate: np.ndarray, tau: float, radius_px: float) -> np.ndarray:
@@ -258,9 +259,11 @@ def untrust_shade(trust: np.ndarray, plate: np.ndarray, tau: float, radius_px: f
     paper's grey (the trusted plate's 90th percentile) and ``SHADE_MIN_DN tau``
     or more below it, yet lighter than ``SHADE_LO`` of it (printed ink is
     darker, and textured: within a pixel of its dark :func:`plate_ink` they stay), in
-    pieces (8-connected) inside ``radius_px`` of the axis (a turntable's rim
-    of its own grey turns with it too, and is no object), are no longer
-    trusted. A view then tells such a shade from the object by what joins it
+    pieces (8-connected) over the axis (within ``SHADE_AXIS_PX``: under the
+    object; the shaded paper round a white vase's foot, off the axis, stays
+    trusted: untrusted, the vase's masks took it) that do not reach
+    ``radius_px`` (a turntable's rim of its own grey turns with it too, and
+    is no object), are no longer trusted. A view then tells such a shade from the object by what joins it
     to the mask (the doubt), as an island's (:func:`untrust_enclosed`).
     """
     t = trust > 0
@@ -273,8 +276,10 @@ def untrust_shade(trust: np.ndarray, plate: np.ndarray, tau: float, radius_px: f
     if not shade.any():
         return trust
     n, lab = cv2.connectedComponents(shade.astype(np.uint8), connectivity=8)
-    rim = np.unique(lab[raster_radius_px(len(g)) >= radius_px])
-    inner = np.ones(n, bool)
+    rr = raster_radius_px(len(g))
+    rim = np.unique(lab[rr >= radius_px])
+    inner = np.zeros(n, bool)
+    inner[np.unique(lab[rr <= SHADE_AXIS_PX])] = True  # under the object: over the axis
     inner[rim] = False
     inner[0] = False
     return (t & ~inner[lab]).astype(np.uint8)
