@@ -137,6 +137,13 @@ def shading_ramp(img: np.ndarray, tau: float) -> np.ndarray:
     return (worst < (_RAMP_RESIDUAL * tau) ** 2) & (rise >= _RAMP_RISE * tau)
 
 
+def no_edge(img: np.ndarray, tau: float) -> np.ndarray:
+    """(h, w) bool: pixels on no edge: a 3 x 3 colour range under ``2 tau`` (:func:`colour_range`) or a smooth
+    ramp of shading (:func:`shading_ramp`), through which the doubt grows (:func:`doubt_joined`,
+    :func:`doubt_enclosed`)."""
+    return (colour_range(img) < 2.0 * tau) | shading_ramp(img, tau)
+
+
 def colour_set(samples: np.ndarray, min_count: int = 2) -> np.ndarray:
     """(32, 32, 32) bool: the colours seen at least ``min_count`` times in ``samples`` (..., 3) uint8,
     grown by one bin (noise, a little shading)."""
@@ -159,11 +166,17 @@ HUE_SLACK = 2  # ... grown by this many bins (0.03: a white body's warmer lit si
 HUE_MIN_SUM = 120  # ... for pixels with r + g + b at least this (a dark pixel's hue is noise)
 
 
+def chromaticity(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(..., 3) float32 chromaticity ``rgb / (r + g + b)`` of ``img`` (..., 3) and the sum (...) float32."""
+    f = np.asarray(img, np.float32)
+    total = f.sum(axis=-1)
+    return f / np.maximum(total, 1.0)[..., None], total
+
+
 def _hue_bins(px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    f = px.astype(np.float32)
-    s = np.maximum(f.sum(axis=-1), 1.0)
-    q = lambda c: np.clip((f[..., c] / s * HUE_BINS).astype(np.intp), 0, HUE_BINS - 1)  # noqa: E731
-    return q(0), q(1)
+    """The (r, g) chromaticity bins (``HUE_BINS`` each) of the pixels ``px`` (..., 3)."""
+    q = np.clip((chromaticity(px)[0][..., :2] * HUE_BINS).astype(np.intp), 0, HUE_BINS - 1)
+    return q[..., 0], q[..., 1]
 
 
 def hue_unlike(img: np.ndarray, sel: np.ndarray) -> np.ndarray:
@@ -260,7 +273,7 @@ def doubtful_pixels(img, mask, region, ev: Evidence, ink: np.ndarray, plates_onl
         object_colours = np.zeros((32,) * 3, bool)
     known = ev.tight if plates_only else ev.tight | (~ev.trusted if static is None else ~ev.trusted & ~static)
     confident = ~in_set(img, object_colours) & known
-    if plates_only:  # ... but not in a hue the mask never shows, where a plate matches closely
+    if plates_only:  # ... but not in a hue the mask never shows, where a plate explains it or none is trusted
         confident |= (ev.explained | ~ev.trusted) & hue_unlike(img, mask)
     confident |= ink
     return region & ~mask & ~confident
@@ -311,7 +324,7 @@ def doubt_joined(img: np.ndarray, mask: np.ndarray, doubtful: np.ndarray, paper:
     a light wall, seed 3: 0.66 -> 0.70 %).
     """
     k3 = np.ones((3, 3), np.uint8)
-    smooth = doubtful & ~paper & ((colour_range(img) < 2.0 * tau) | shading_ramp(img, tau))
+    smooth = doubtful & ~paper & no_edge(img, tau)
     n, lab = cv2.connectedComponents(smooth.astype(np.uint8), connectivity=8)
     seeds = (cv2.dilate(mask.astype(np.uint8), k3) > 0) & smooth
     if on_plate is not None and (seeds & on_plate).any():  # ... on the paper, in the mask's colour next to it
@@ -446,8 +459,7 @@ def doubt_enclosed(img: np.ndarray, held: np.ndarray, doubtful: np.ndarray, tau:
     n = len(fill)
     rim = free & (cv2.dilate(held.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)
     n_rim = np.bincount(lab[rim], minlength=n)
-    smooth = (colour_range(img) < 2.0 * tau) | shading_ramp(img, tau)
-    n_smooth = np.bincount(lab[rim & smooth], minlength=n)
+    n_smooth = np.bincount(lab[rim & no_edge(img, tau)], minlength=n)
     fill &= n_smooth >= smooth_share * np.maximum(n_rim, 1)
     return fill[lab]
 

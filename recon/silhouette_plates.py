@@ -22,7 +22,16 @@ import numpy as np
 from calib.camera import camera_centre_table, plane_homography
 
 from .silhouette_checks import camera_azimuths_deg
-from .silhouette_doubt import Plate, colour_dist, colour_gradient, in_set, plate_envelope, range_dist, shading_ramp
+from .silhouette_doubt import (
+    Plate,
+    chromaticity,
+    colour_dist,
+    colour_gradient,
+    in_set,
+    plate_envelope,
+    range_dist,
+    shading_ramp,
+)
 
 __all__ = ["Plates", "TablePlate", "rectify_to_table", "raster_to_table", "median_frames", "below_horizon",
            "table_plate", "PLANE_PX_PER_MM", "PLATE_BORDER_MM", "TRUST", "STRONG", "untrust_enclosed"]
@@ -289,13 +298,6 @@ GROUND_CHROMA = 0.08  # a printed ground is coloured when its chromaticity is th
 GROUND_SHARE = 0.5  # ... and when this share of the paper's plain texels has its chromaticity
 _GROUND_TOL = 0.04  # chromaticity tolerance of a ground pixel (plus the noise's share at its brightness)
 _GROUND_MIN_SUM = 90.0  # R + G + B: darker pixels' chromaticity is mostly noise
-
-
-def chromaticity(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(..., 3) float32 chromaticity ``rgb / (r + g + b)`` of ``img`` (..., 3) and the sum (...) float32."""
-    f = np.asarray(img, np.float32)
-    total = f.sum(axis=-1)
-    return f / np.maximum(total, 1.0)[..., None], total
 
 
 def printed_ground(plate: np.ndarray, trust: np.ndarray, radius_px: float, tau: float) -> np.ndarray | None:
