@@ -996,6 +996,40 @@ def test_untrust_shade_drops_a_grey_that_turns_with_the_table():
     assert untrust_shade(trust, soft, 6.0, radius_px=70.0).all()
 
 
+def test_untrust_shade_finds_the_grey_against_a_foot_off_the_axis():
+    """An object standing off the axis: the plate where it stands is its grey in every view (trusted), and
+    round it the views disagree (its sides against the paper: untrusted). Not over the axis, it loses its
+    trust all the same. The same grey with nothing untrusted round it (a shade of the paper the views agree
+    on) and a shade that rings an untrusted foot (its outer edge on the lit paper: the shaded paper round a
+    vase's foot) keep theirs."""
+    from recon.silhouette_plates import untrust_shade
+
+    n = 201
+    rng = np.random.default_rng(11)
+    plate = np.clip(np.full((n, n, 3), 230.0) + rng.normal(0.0, 1.0, (n, n, 3)), 0, 255).astype(np.uint8)
+    trust = np.ones((n, n), np.uint8)
+    # a box 30-60 px right of the axis (centre 100): its grey, in a band where the views disagree, open on one side
+    grey = np.zeros((n, n), bool)
+    grey[85:115, 130:160] = True
+    plate[grey] = 145
+    trust[80:120, 125:165] = 0
+    trust[grey] = 1
+    trust[85:115, 160:165] = 1  # the lit side: the paper, trusted
+    # a lone patch of the same size and grey, nothing untrusted round it
+    plate[40:70, 40:70] = 145
+    # a shade ringing a foot further round: an annulus round an untrusted disc
+    yy, xx = np.mgrid[:n, :n]
+    r = np.hypot(yy - 150, xx - 60)
+    trust[r <= 10] = 0
+    ring = (r > 10) & (r <= 16)
+    plate[ring] = 150
+    out = untrust_shade(trust, plate, 6.0, radius_px=95.0)
+    assert not out[grey].any()
+    assert out[40:70, 40:70].all()
+    assert out[ring].all()
+    assert (out[trust > 0] | grey[trust > 0]).all()  # nothing else changes
+
+
 def test_hue_unlike_tells_a_grain_from_shading():
     """Against a white mask's hues, a grey shade of the same white (its dull side) is not unlike, a brown
     table's grain is, and a dark pixel (whose hue is noise) never is."""
