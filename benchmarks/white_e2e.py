@@ -21,8 +21,10 @@ written here as meshes from signed distances (``--object FILE``): a teapot
 paper under the overhanging belly lies in its contact shadow), a bunny
 (ellipsoid body, head, two thin ears, a tail), a snowman (three stacked
 balls and a rod) and a box. ``--objects cup chair`` adds the built-in hull-
-limited ones. Albedo: ``white`` (0.85, 0.84, 0.82); ``--albedo R,G,B`` for
-another off-white.
+limited ones; ``--objects offbox`` a box standing off the axis (balanced by a
+ball on a rod lying on the table, so that the synth's centring leaves it
+there). Albedo: ``white`` (0.85, 0.84, 0.82); ``--albedo R,G,B`` for another
+off-white.
 
 Prints per sequence: exit code, pieces, watertight, Chamfer % of the
 diagonal (auto and ideal), and seconds. Renders are cached in WORK_DIR (each
@@ -58,6 +60,7 @@ from resolution import chamfer_pct  # noqa: E402
 
 BUILT_IN = ("vase", "figure", "cup", "chair")
 SHAPES = ("teapot", "bunny", "snowman", "box")
+EXTRA_SHAPES = ("offbox",)  # on request (--objects offbox): a box off the axis
 
 
 def _sdf_mesh(name: str, path: Path) -> None:
@@ -65,7 +68,7 @@ def _sdf_mesh(name: str, path: Path) -> None:
     import trimesh
     from skimage.measure import marching_cubes
 
-    g = np.linspace(-60.0, 110.0, 341)
+    g = np.linspace(-80.0, 110.0, 381) if name == "offbox" else np.linspace(-60.0, 110.0, 341)
     X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
 
     def ell(c, r):  # ellipsoid, an approximate distance (scaled by the smallest radius)
@@ -95,6 +98,10 @@ def _sdf_mesh(name: str, path: Path) -> None:
         d = np.minimum.reduce([ball((0, 30, 0), 30), ball((5, 75, 0), 20), rod((-20, 72, 0), (20, 72, 0), 6)])
     elif name == "box":
         d = np.maximum.reduce([np.abs(X) - 30, np.abs(Y - 25) - 25, np.abs(Z) - 20])
+    elif name == "offbox":  # the box 8 mm off the axis (the synth centres the bounding box): a ball on a rod
+        # lying on the table balances it, one piece
+        d = np.minimum.reduce([np.maximum.reduce([np.abs(X - 40) - 30, np.abs(Y - 25) - 25, np.abs(Z) - 20]),
+                               ball((-60, 8, 0), 8), rod((-60, 8, 0), (20, 8, 0), 4)])
     else:
         raise ValueError(name)
     d = np.maximum(d, -Y)  # cut flat at the table
@@ -144,7 +151,7 @@ def _render(work: Path, obj: str, backdrop: str, seed: int, size: str, albedo: s
     tail = "".join(f"_{k.split('-')[0]}{v:g}" for k, v in extra.items())
     d = work / f"{obj}_{backdrop}_s{seed}_{size}_{albedo.replace(',', '-')}{tail}"
     source = obj
-    if obj in SHAPES:
+    if obj in SHAPES + EXTRA_SHAPES:
         source = str(work / f"{obj}.obj")
         if not Path(source).exists():
             _sdf_mesh(obj, Path(source))
@@ -166,7 +173,7 @@ def main(argv: list[str]) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("work", help="folder for the renders and the runs (reused)")
     ap.add_argument("--objects", nargs="+", default=["vase", "figure", *SHAPES],
-                    choices=[*BUILT_IN, *SHAPES])
+                    choices=[*BUILT_IN, *SHAPES, *EXTRA_SHAPES])
     ap.add_argument("--backdrops", nargs="+", default=["dark", "light"], choices=["dark", "light"])
     ap.add_argument("--seeds", nargs="+", type=int, default=[3, 4])
     ap.add_argument("--size", type=_size, default="640x480")
