@@ -277,8 +277,8 @@ def untrust_shade(trust: np.ndarray, plate: np.ndarray, tau: float, radius_px: f
     whose outer rim is untrusted for ``SHADE_RINGED`` of its length or more:
     where an object stands, every view shows its grey, and round it the views
     disagree (its sides against the paper, the paper beyond them: a white box
-    standing 8 mm off the axis kept its grey trusted, 2.3 % of the diagonal;
-    its rim 0.77 untrusted). A shade that rings a foot (the shaded paper round
+    standing 8 mm off the axis kept its grey trusted, 2.06 % of the
+    diagonal; its rim 0.77 untrusted). A shade that rings a foot (the shaded paper round
     a vase's foot, which untrusted, the vase's masks took) has its longer,
     outer edge on the lit paper, and the blended edges of the printed ink
     none untrusted (the white figures' largest such share: 0.54). A view then
@@ -299,7 +299,8 @@ def untrust_shade(trust: np.ndarray, plate: np.ndarray, tau: float, radius_px: f
     rim = np.unique(lab[rr >= radius_px])
     inner = np.zeros(n, bool)
     inner[np.unique(lab[rr <= SHADE_AXIS_PX])] = True  # under the object: over the axis ...
-    # ... or against its foot, off the axis: the piece's outer rim (the texels beside it) mostly untrusted
+    # ... or, off it, where it stands: the piece's outer rim (the texels beside it) mostly untrusted, as the views
+    # disagree round an object (a shade ringing a foot has its longer, outer edge on the trusted paper)
     grown = cv2.dilate(lab.astype(np.float32), np.ones((3, 3), np.uint8)).astype(np.int64)
     ring = (grown > 0) & ~shade
     total = np.bincount(grown[ring], minlength=n)
