@@ -98,6 +98,14 @@ def colour_gradient(img: np.ndarray, sigma: float = 1.0) -> np.ndarray:
     return grad
 
 
+def rim_counts(lab: np.ndarray, n: int, parts: np.ndarray, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For the labelled ``parts`` (``lab`` (h, w), labels 1 .. n - 1 on ``parts``, 0 elsewhere): the pixels of each
+    one's outer rim (next to it, 8-connected, not of ``parts``) in ``sel`` (h, w) bool, and all of them, (n,) each."""
+    grown = cv2.dilate(lab.astype(np.float32), np.ones((3, 3), np.uint8)).astype(np.int64)
+    rim = (grown > 0) & ~parts
+    return np.bincount(grown[rim & sel], minlength=n), np.bincount(grown[rim], minlength=n)
+
+
 def colour_range(img: np.ndarray) -> np.ndarray:
     """(h, w) int16: the largest channel's 3 x 3 range (max - min) of ``img`` (h, w, C) uint8: an edge
     where it reaches ``2 tau`` (:func:`doubt_joined`, :func:`doubt_enclosed`)."""

@@ -30,6 +30,7 @@ from .silhouette_doubt import (
     in_set,
     plate_envelope,
     range_dist,
+    rim_counts,
     shading_ramp,
 )
 
@@ -249,8 +250,8 @@ def untrust_enclosed(trust: np.ndarray, plate: np.ndarray, tau: float) -> np.nda
 
 
 SHADE_LO, SHADE_HI = 0.35, 0.8  # untrust_shade: a plain texel this dark against the paper's grey (ink: darker) ...
-SHADE_MIN_DN = 4.0  # ... and at least this many tau darker than it, in a piece over the axis (this near)
-SHADE_AXIS_PX = 3.0
+SHADE_MIN_DN = 4.0  # ... and at least this many tau darker than it, ...
+SHADE_AXIS_PX = 3.0  # ... in a piece over the axis (this near), ...
 SHADE_RINGED = 0.65  # ... or in a piece this much of whose outer rim is untrusted (the foot of an object off the axis)
 SHADE_MIN_MM2 = 20.0  # ... and at least this large
 
@@ -301,10 +302,7 @@ def untrust_shade(trust: np.ndarray, plate: np.ndarray, tau: float, radius_px: f
     inner[np.unique(lab[rr <= SHADE_AXIS_PX])] = True  # under the object: over the axis ...
     # ... or, off it, where it stands: the piece's outer rim (the texels beside it) mostly untrusted, as the views
     # disagree round an object (a shade ringing a foot has its longer, outer edge on the trusted paper)
-    grown = cv2.dilate(lab.astype(np.float32), np.ones((3, 3), np.uint8)).astype(np.int64)
-    ring = (grown > 0) & ~shade
-    total = np.bincount(grown[ring], minlength=n)
-    untrusted = np.bincount(grown[ring & ~t], minlength=n)
+    untrusted, total = rim_counts(lab, n, shade, ~t)
     size = np.bincount(lab.ravel(), minlength=n)
     inner |= (untrusted >= SHADE_RINGED * np.maximum(total, 1)) & (size >= SHADE_MIN_MM2 * PLANE_PX_PER_MM ** 2)
     inner[rim] = False

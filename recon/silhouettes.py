@@ -144,6 +144,7 @@ from .silhouette_doubt import (
     major_colours,
     range_dist,
     reach,
+    rim_counts,
     shadow_dist,
     texture_match,
     window_mean,
@@ -422,10 +423,7 @@ def _enclosed_parts(cand: np.ndarray, held: np.ndarray) -> np.ndarray:
     n, lab = cv2.connectedComponents(cand.astype(np.uint8), connectivity=8)
     if n <= 1:
         return np.zeros_like(cand)
-    grown = cv2.dilate(lab.astype(np.float32), np.ones((3, 3), np.uint8)).astype(np.int64)
-    rim = (grown > 0) & ~cand
-    total = np.bincount(grown[rim], minlength=n)
-    inner = np.bincount(grown[rim & held], minlength=n)
+    inner, total = rim_counts(lab, n, cand, held)
     keep = inner >= DEEP_RIM_HELD * np.maximum(total, 1)
     keep[0] = False
     return keep[lab]
