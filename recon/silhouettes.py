@@ -398,7 +398,7 @@ DEEP_VIEW_SHARE = 1 / 6  # ... carved by this share of the views at most (neighb
 DEEP_STEP_MM = 1.0  # ... then voxels this fine round what all views but those few hold
 DEEP_ONE_SIDE = 0.75  # ... and those views on one side of the turn: their azimuths' mean resultant length
 DEEP_FLOOR_MM = 20.0  # ... above this height (lower down, a held cast shadow's skirt: recon.shadows)
-DEEP_MM = 4.0  # ... a voxel this deep inside what every other view holds (a handle's loop is 10 mm across)
+DEEP_MM = 4.0  # ... a voxel this deep inside what every other view holds (2 mm closed a teapot's handle loop)
 DEEP_RIM_HELD = 0.65  # ... drawn where this share of a part's rim is held: a notch, not a sliver
 _DEEP_MAX_VOXELS = 2_000_000  # ... the finer voxels: at most this many (coarser than DEEP_STEP_MM if need be)
 
@@ -454,8 +454,8 @@ def carved_deep_alone(held: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, 
     neighbouring views of 36, at the same place, and their rays carved hollows through the body, which every
     other view holds (1.5 % of the diagonal; 0.4 % from the true silhouettes). Of the voxels inside the true
     hull that the views carved, every one was carved by five views or fewer, all on one side (restored:
-    0.76 %). The rim a view shapes beside an object (the other views' hull is a polygon round a round body
-    there) is a lens about a millimetre thick, not deep. The teapot's handle loop, 10 mm across, is seen
+    0.78 %). The rim a view shapes beside an object (the other views' hull is a polygon round a round body
+    there) is a lens about a millimetre thick, not deep. The teapot's handle loop is seen
     through from both sides, but at the loop's inner rim by a few views on one side only: 2 mm deep closed
     the loop in the model, 4 mm leaves it open as before.
     """
