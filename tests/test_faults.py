@@ -231,9 +231,18 @@ def test_a_concurrent_run_is_refused_and_changes_nothing(good, scene, tmp_path, 
     assert published_digests(out) == good[1]
 
 
-def _wait_for_staging(out: Path, proc: subprocess.Popen, timeout: float = 60.0) -> None:
+def _stop_mid_run(out: Path, proc: subprocess.Popen, timeout: float = 60.0) -> None:
+    """Leave ``proc`` stopped (SIGSTOP) at a moment its staging folder exists: mid-run, whatever the load.
+
+    Looking for the folder while the run goes on races its end on a busy machine (the run can publish
+    between the look and the signal); a stopped run cannot.
+    """
     t0 = time.monotonic()
-    while not list((out / ".turntable").glob(f"staging.{proc.pid}")):
+    while True:
+        proc.send_signal(signal.SIGSTOP)
+        if list((out / ".turntable").glob(f"staging.{proc.pid}")):
+            return
+        proc.send_signal(signal.SIGCONT)
         assert proc.poll() is None, proc.communicate()
         assert time.monotonic() - t0 < timeout
         time.sleep(0.02)
@@ -242,8 +251,9 @@ def _wait_for_staging(out: Path, proc: subprocess.Popen, timeout: float = 60.0) 
 def test_sigterm_ends_the_run_like_ctrl_c(good, scene, tmp_path):
     out = _copy(good, tmp_path)
     p = _cli(*_args(scene, out, "--overwrite"))
-    _wait_for_staging(out, p)  # created as the run starts, seconds before it can finish: mid-run for sure
-    p.send_signal(signal.SIGTERM)
+    _stop_mid_run(out, p)
+    p.send_signal(signal.SIGTERM)  # pending until the run goes on
+    p.send_signal(signal.SIGCONT)
     _, err = p.communicate(timeout=30)
     assert p.returncode == 128 + signal.SIGTERM and "terminated" in err and "Traceback" not in err, err
     assert published_digests(out) == good[1] and run_leftovers(out) == []
