@@ -25,7 +25,9 @@ from calib.camera import camera_centre_table
 
 __all__ = ["frame_status", "camera_azimuths_deg", "fill_gaps", "EMPTY"]
 
-_MIN_AREA = 0.02  # a silhouette smaller than this fraction of the cylinder's image is "empty"
+_MIN_AREA = 0.02  # a silhouette smaller than this fraction of the cylinder's image is "empty" ...
+_TYPICAL_SHARE = 0.25  # ... when also under this share of the sequence's median area (a thin object is small in all)
+_FLOOR_AREA = 0.002  # ... and under this fraction, whatever the other frames show
 EMPTY = "empty silhouette"  # the reason such a frame is rejected (and kept, where it closes a gap)
 _MIN_SUPPORT = 0.5  # outline fraction that must look like background
 
@@ -47,12 +49,16 @@ def frame_status(area_px: np.ndarray, support: np.ndarray, border_px: np.ndarray
     W, H = size
     quality = np.zeros(V)
     status = []
+    # a thin figure seen side on, or a small object in a wide working volume, covers under 2 % of the
+    # cylinder's image in frames whose masks are whole: "empty" is small against the other frames too
+    typical = float(np.median(area)) if V else 0.0
     for i in range(V):
         nb = [area[(i + d) % V] for d in (-2, -1, 1, 2) if V > 2 and (i + d) % V != i]
         ref = float(np.median(nb)) if nb else area[i]
         ratio = area[i] / ref if ref > 0 else (1.0 if area[i] == 0 else np.inf)
         quality[i] = float(support[i]) * (min(ratio, 1.0 / ratio) if 0 < ratio < np.inf else 0.0)
-        if region_px[i] == 0 or area[i] < _MIN_AREA * region_px[i]:
+        small = area[i] < _MIN_AREA * region_px[i] and area[i] < _TYPICAL_SHARE * typical
+        if region_px[i] == 0 or small or area[i] < _FLOOR_AREA * region_px[i]:
             quality[i] = 0.0
             status.append("rejected: the working volume is not in view" if region_px[i] == 0 else
                           f"rejected: {EMPTY} ({int(area[i])} px)")

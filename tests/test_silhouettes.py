@@ -198,6 +198,23 @@ def test_fill_gaps_keeps_no_gap_over_30_deg():
     assert [i for i, s in enumerate(half) if s.startswith("conservative")] == [12, 15, 17], half
 
 
+def test_a_thin_object_small_in_every_frame_is_not_empty():
+    """A thin object (a pole, a figure side on) covers 1.5 % of the working volume's image in every frame:
+    its masks are kept. A frame whose mask collapsed to a tenth of the others', or one with nothing, is
+    empty; so is a sequence of specks."""
+    from recon.silhouette_checks import frame_status
+
+    V, region = 12, np.full(12, 100_000.0)
+    area = np.full(V, 1500.0)
+    area[3], area[7] = 150.0, 0.0
+    _, status = frame_status(area, np.ones(V), np.zeros(V), region, (640, 480))
+    assert [i for i, s in enumerate(status) if s != "ok"] == [3, 5, 7], status
+    assert status[3] == "rejected: empty silhouette (150 px)" and status[7] == "rejected: empty silhouette (0 px)"
+    assert "area jumps" in status[5], status  # two of its four neighbours empty
+    _, specks = frame_status(np.full(V, 150.0), np.ones(V), np.zeros(V), region, (640, 480))
+    assert all("empty silhouette" in s for s in specks), specks
+
+
 def test_real_studio_photos_outline_without_plates_is_ok():
     """Black room, black disc, no target, an object on the axis covering the same pixels in most
     frames (real turntable photos): no plate is trusted next to the outline, which must not count
