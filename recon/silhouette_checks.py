@@ -26,7 +26,7 @@ from calib.camera import camera_centre_table
 __all__ = ["frame_status", "camera_azimuths_deg", "fill_gaps", "EMPTY"]
 
 _MIN_AREA = 0.02  # a silhouette smaller than this fraction of the cylinder's image is "empty" ...
-_TYPICAL_SHARE = 0.25  # ... when also under this share of the sequence's median area (a thin object is small in all)
+_TYPICAL_SHARE = 0.75  # ... when also under this share of the sequence's median area (a thin object is small in all)
 _FLOOR_AREA = 0.002  # ... and under this fraction, whatever the other frames show
 EMPTY = "empty silhouette"  # the reason such a frame is rejected (and kept, where it closes a gap)
 _MIN_SUPPORT = 0.5  # outline fraction that must look like background
