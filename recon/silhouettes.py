@@ -417,15 +417,20 @@ def _not_held_counts(held: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, p
     return count, np.hypot(resultant[:, 0], resultant[:, 1]) / np.maximum(count, 1)
 
 
-def _enclosed_parts(cand: np.ndarray, held: np.ndarray) -> np.ndarray:
+def _enclosed_parts(cand: np.ndarray, held: np.ndarray, thick: bool = False) -> np.ndarray:
     """The 8-connected parts of ``cand`` (h, w) bool whose outer rim (the pixels next to them, not theirs) lies in
     ``held`` (h, w) bool for ``DEEP_RIM_HELD`` of its length or more: a notch into what a view holds, not a
-    sliver along its outline."""
+    sliver along its outline. With ``thick``, also the parts whose rim is held for ``THICK_RIM_HELD`` of its
+    length and whose area is ``THICK_AREA_PER_RIM`` times that length or more (a disc 8 pixels across): a
+    part whose one side is the object's outline, not a sliver."""
     n, lab = cv2.connectedComponents(cand.astype(np.uint8), connectivity=8)
     if n <= 1:
         return np.zeros_like(cand)
     inner, total = rim_counts(lab, n, cand, held)
     keep = inner >= DEEP_RIM_HELD * np.maximum(total, 1)
+    if thick:
+        area = np.bincount(lab.ravel(), minlength=n)
+        keep |= (inner >= THICK_RIM_HELD * np.maximum(total, 1)) & (area >= THICK_AREA_PER_RIM * np.maximum(total, 1))
     keep[0] = False
     return keep[lab]
 
@@ -501,6 +506,8 @@ EXPLAIN_OPEN_PX = 3  # ... a mask's pixels with no hull behind them, opened this
 EXPLAIN_SHARE = 1 / 6  # ... get back the voxels their rays meet that this share of the views or fewer carve
 EXPLAIN_SEEN = 3 / 4  # ... and that this share of the views or more see (a blob the other views do not see)
 EXPLAIN_RIM_HELD = 0.75  # ... from parts of those pixels whose rim the view holds this much: a hole, not a fringe
+THICK_RIM_HELD = 0.4  # ... and, kept as well, parts of what it draws whose rim the view holds this much ...
+THICK_AREA_PER_RIM = 2.0  # ... with this much area per pixel of rim (the blurred plinth's front edge is the outline)
 _EXPLAIN_COARSE_CELLS = 24  # (the hull found first on voxels this many across the volume's radius)
 
 
@@ -1298,7 +1305,7 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
         for k, i in enumerate(used):
             d = np.zeros((H, W), bool)
             d[box] = doubtful[i]
-            unknown[i] |= _enclosed_parts(back[k] & d & ~masks[i] & ~unknown[i], masks[i] | unknown[i])
+            unknown[i] |= _enclosed_parts(back[k] & d & ~masks[i] & ~unknown[i], masks[i] | unknown[i], thick=True)
     if used:  # a turning part in the room plate's colour for a frame or two, which the frames either side hold
         sub_used = np.asarray(used)
         between = held_between(masks[sub_used], camera_azimuths_deg(T[sub_used]), imgs[sub_used])

@@ -1263,6 +1263,25 @@ def test_what_a_few_views_carve_from_behind_other_views_masks_is_given_back():
     assert (got[others] & ~held[others]).sum() <= 0.01 * masks[others].sum()  # the hull's rim, where few carve
 
 
+def test_a_thick_part_along_the_outline_is_kept_a_sliver_is_not():
+    """What explained_back draws is kept in parts mostly ringed by what the view holds, or, with ``thick``, in
+    parts half ringed by it and thick (a blurred plinth's top, whose front edge is the object's outline); a
+    sliver along the outline is half ringed too, and stays out."""
+    from recon.silhouettes import _enclosed_parts
+
+    held = np.zeros((40, 40), bool)
+    held[5:35, 5:35] = True
+    cand = np.zeros_like(held)
+    cand[20:35, 5:25] = True  # a block in the corner of what the view holds: two sides on the outline
+    held[20:35, 5:25] = False
+    sliver = np.zeros_like(held)
+    sliver[5:35, 35:37] = True  # two columns beside the outline
+    both = cand | sliver
+    assert not _enclosed_parts(both, held).any()
+    kept = _enclosed_parts(both, held, thick=True)
+    assert kept[cand].all() and not kept[sliver].any()
+
+
 @pytest.mark.parametrize("n_out", [2, 5])
 def test_a_notch_neighbouring_views_leave_out_is_found_a_tunnel_many_see_through_is_not(n_out):
     """``n_out`` neighbouring side views of the tunnelled drum (36 views) leave out the same notch, cut from the
