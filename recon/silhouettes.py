@@ -93,7 +93,11 @@ few views on the same side of the turn only) space at least 4 mm inside what
 every other view holds (:func:`carved_deep_alone`: a white teapot's lit
 shoulder beside its lid, left out across the crease under it in up to seven
 neighbouring views, carved hollows through the body); free space shows in
-the silhouettes from both sides of the turn.
+the silhouettes from both sides of the turn. Then, where the hull carved with
+all views leaves a hole in a view's mask with no voxel behind it, the voxels
+on its rays that a sixth of the views or fewer carve are given back to the
+views that carved them (:func:`explained_back`: a white plinth's top, taken
+for the paper by views on both sides of the turn).
 These rules grow by whole pixels, and the pixel past an edge blends both
 sides: at the very end, each pixel of the outer layer of what a frame holds
 beyond its mask goes to the side that covers most of it, where the object's
