@@ -421,6 +421,17 @@ def _not_held_counts(held: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, p
     return count, np.hypot(resultant[:, 0], resultant[:, 1]) / np.maximum(count, 1)
 
 
+def _cylinder_cells(lo: np.ndarray, hi: np.ndarray, step: float, radius_mm: float, height_mm: float):
+    """Voxel centres (X, Y, Z, 3) table mm, ``step`` apart from ``lo + step / 2`` to below ``hi``, and which of them
+    lie in the working volume's cylinder (X, Y, Z) bool; None where the box holds no voxel."""
+    axes = [np.arange(lo[k] + step / 2, hi[k], step) for k in range(3)]
+    if min(len(a) for a in axes) == 0:
+        return None
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+    inside = (np.hypot(grid[..., 0], grid[..., 2]) <= radius_mm) & (grid[..., 1] >= 0.0) & (grid[..., 1] <= height_mm)
+    return grid, inside
+
+
 def _enclosed_parts(cand: np.ndarray, held: np.ndarray, thick: bool = False) -> np.ndarray:
     """The 8-connected parts of ``cand`` (h, w) bool whose outer rim (the pixels next to them, not theirs) lies in
     ``held`` (h, w) bool for ``DEEP_RIM_HELD`` of its length or more: a notch into what a view holds, not a
@@ -479,12 +490,10 @@ def carved_deep_alone(held: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, 
     lo = np.array([-radius_mm, 0.0, -radius_mm])
     hi = np.array([radius_mm, height_mm, radius_mm])
     for fine in (False, True):
-        axes = [np.arange(lo[k] + step / 2, hi[k], step) for k in range(3)]
-        if min(len(a) for a in axes) == 0:
+        cells = _cylinder_cells(lo, hi, step, radius_mm, height_mm)
+        if cells is None:
             return out
-        grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
-        inside = (np.hypot(grid[..., 0], grid[..., 2]) <= radius_mm) & (grid[..., 1] >= 0.0) \
-            & (grid[..., 1] <= height_mm)
+        grid, inside = cells
         pts = grid[inside]
         count, resultant = _not_held_counts(held, K, T_cam_table, pts)
         few = (count >= 1) & (count <= few_views) & (resultant >= DEEP_ONE_SIDE)
@@ -572,12 +581,10 @@ def explained_back(masks: np.ndarray, held: np.ndarray, K: np.ndarray, T_cam_tab
     lo = np.array([-radius_mm, 0.0, -radius_mm])
     hi = np.array([radius_mm, height_mm, radius_mm])
     for fine in (False, True):  # the hull coarse, then finer round it
-        axes = [np.arange(lo[k] + step / 2, hi[k], step) for k in range(3)]
-        if min(len(a) for a in axes) == 0:
+        cells = _cylinder_cells(lo, hi, step, radius_mm, height_mm)
+        if cells is None:
             return out
-        grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
-        inside = (np.hypot(grid[..., 0], grid[..., 2]) <= radius_mm) & (grid[..., 1] >= 0.0) \
-            & (grid[..., 1] <= height_mm)
+        grid, inside = cells
         pts = grid[inside]
         free, seen = np.zeros(len(pts), np.int16), np.zeros(len(pts), np.int16)
         for j in range(V):  # one projection per view: 0 off the image, 1 held, 2 not held
