@@ -481,7 +481,7 @@ def carved_deep_alone(held: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, 
     """
     from scipy import ndimage
 
-    V, H, W = held.shape
+    V = len(held)
     out = np.zeros_like(held)
     few_views = int(DEEP_VIEW_SHARE * V)
     if few_views < 1:  # too few views to tell a side that carves alone
