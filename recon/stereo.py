@@ -307,11 +307,25 @@ def _sweep(ref: _Ref, neigh: list[tuple[np.ndarray, np.ndarray, np.ndarray]], z0
 
 def _best_half_mean(scores: np.ndarray) -> np.ndarray:
     """(h, w) mean of the best half (rounded up) of the neighbours' scores (n, h, w): one occluded
-    neighbour does not sink a match."""
-    k_best = max(1, (len(scores) + 1) // 2)
-    if k_best < len(scores):
-        scores = -np.partition(-scores, k_best - 1, axis=0)[:k_best]
-    return scores.mean(axis=0)
+    neighbour does not sink a match.
+
+    The best half is sorted out by compare-exchanges of whole (h, w) planes (odd-even transposition:
+    n rounds), not by ``np.partition`` along the first axis, which strides across the planes and took a
+    third of the stereo stage (2 x 2 neighbours, 1280 x 960: ~12 ms a call against ~1 ms)."""
+    n = len(scores)
+    k_best = max(1, (n + 1) // 2)
+    if k_best >= n:
+        return scores.mean(axis=0)
+    rows = [np.array(r, copy=True) for r in scores]
+    for r in range(n):
+        for j in range(r % 2, n - 1, 2):
+            hi = np.maximum(rows[j], rows[j + 1])
+            np.minimum(rows[j], rows[j + 1], out=rows[j + 1])
+            rows[j] = hi
+    total = rows[0].copy()
+    for row in rows[1:k_best]:
+        total += row
+    return total / np.asarray(k_best, dtype=total.dtype)
 
 
 def _static_score(ref: _Ref, neigh: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:
@@ -349,12 +363,17 @@ def _pick_peak(vol: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     inner = (best > 0) & (best < D - 1) & (curv < -1e-6)
     off = np.where(inner, 0.5 * (lo - hi) / np.where(inner, curv, -1.0), 0.0)
     pos = best + np.clip(off, -0.5, 0.5)
-    # second-highest local maximum, away from the main peak
-    pad = np.concatenate([np.full_like(vol[:1], -2.0), vol, np.full_like(vol[:1], -2.0)])
-    is_max = (vol >= pad[:-2]) & (vol >= pad[2:])
-    idx = np.arange(D)[:, None, None]
-    is_max &= np.abs(idx - best[None]) > 1
-    c2 = np.where(is_max, vol, -1.0).max(axis=0)
+    # second-highest local maximum, away from the main peak (depth by depth: no temporaries the size of
+    # the volume)
+    c2 = np.full(best.shape, -1.0, dtype=vol.dtype)
+    for d in range(D):
+        m = vol[d]
+        ok = np.abs(d - best) > 1
+        if d > 0:
+            ok &= m >= vol[d - 1]
+        if d < D - 1:
+            ok &= m >= vol[d + 1]
+        np.maximum(c2, np.where(ok, m, vol.dtype.type(-1.0)), out=c2)
     return pos.astype(np.float32), c1, c2
 
 

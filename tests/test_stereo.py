@@ -198,3 +198,36 @@ def test_rejects_bad_arguments():
     K = intrinsics()
     with pytest.raises(ValueError):
         depth_maps([np.zeros((240, 320, 3), np.uint8)] * 2, K, np.stack([np.eye(4)] * 3), (1.0, 2.0))
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 5, 6])
+def test_best_half_mean_is_the_mean_of_the_best_half(n):
+    from recon.stereo import _best_half_mean
+
+    rng = np.random.default_rng(n)
+    scores = rng.uniform(-1.0, 1.0, (n, 23, 17)).astype(np.float32)
+    scores[:, :4] = 0.25  # ties
+    k = (n + 1) // 2
+    want = np.sort(scores, axis=0)[::-1][:k].mean(axis=0)
+    got = _best_half_mean(scores)
+    assert got.shape == (23, 17) and got.dtype == np.float32
+    np.testing.assert_allclose(got, want, atol=1e-6)
+    assert np.array_equal(scores[:, :4], np.full((n, 4, 17), 0.25, np.float32))  # the input is left as it was
+
+
+def test_pick_peak_finds_the_peak_and_the_second_local_maximum():
+    from recon.stereo import _pick_peak
+
+    rng = np.random.default_rng(7)
+    D, h, w = 12, 9, 8
+    vol = rng.uniform(-1.0, 1.0, (D, h, w)).astype(np.float32)
+    pos, c1, c2 = _pick_peak(vol)
+    best = vol.argmax(axis=0)
+    np.testing.assert_array_equal(c1, vol.max(axis=0))
+    assert np.all(np.abs(pos - best) <= 0.5)
+    for i in range(h):  # the second local maximum by its definition, pixel by pixel
+        for j in range(w):
+            col = vol[:, i, j]
+            maxima = [col[d] for d in range(D) if abs(d - best[i, j]) > 1
+                      and (d == 0 or col[d] >= col[d - 1]) and (d == D - 1 or col[d] >= col[d + 1])]
+            assert c2[i, j] == (max(maxima) if maxima else -1.0)
