@@ -45,6 +45,7 @@ from scipy import ndimage
 
 from calib.camera import camera_centre_table, plane_homography, project_points
 
+from .silhouette_doubt import channel_max
 from .types import VoxelHull
 
 __all__ = ["Face", "find_faces", "carve_above_faces"]
@@ -224,7 +225,7 @@ def _faces_at(h, outline, section, images_rgb, K, Ts, x0, z0, px, size) -> list[
     rectf = rect.astype(np.float32)
     rectf[~seen] = np.nan
     med = np.nanmedian(rectf, axis=0)
-    agree = np.nansum(np.abs(rectf - med).max(axis=-1) < AGREE_DN, axis=0) / np.maximum(seen.sum(0), 1)
+    agree = np.nansum(channel_max(np.abs(rectf - med)) < AGREE_DN, axis=0) / np.maximum(seen.sum(0), 1)
     out = []
     for c in big:
         region = lab == c

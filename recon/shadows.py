@@ -52,6 +52,7 @@ from scipy import ndimage
 from calib.camera import plane_homography, project_points, values_at_points
 
 from .silhouette_checks import camera_azimuths_deg
+from .silhouette_doubt import channel_max
 from .silhouette_plates import raster_to_table
 from .types import VoxelHull
 
@@ -133,7 +134,7 @@ def _view(img, held, high, cover, K, T, radius_mm) -> _View | None:
     paper = f[lit].mean(axis=0)
     if paper.mean() < 20.0:
         return None
-    chroma = np.abs(f / np.maximum(f.sum(axis=-1, keepdims=True), 1.0) - paper / paper.sum()).max(axis=-1)
+    chroma = channel_max(np.abs(f / np.maximum(f.sum(axis=-1, keepdims=True), 1.0) - paper / paper.sum()))
     ratio = cv2.medianBlur(grey, 3) / float(paper.mean())
     return _View(held, high, chroma < CHROMA_TOL, ratio, near, cover)
 

@@ -26,9 +26,9 @@ import cv2
 import numpy as np
 from scipy.ndimage import binary_dilation
 
-__all__ = ["Plate", "Evidence", "doubtful_pixels", "texture_match", "colour_dist", "colour_gradient", "colour_range",
-           "plate_envelope", "range_dist", "shadow_dist", "colour_set", "in_set", "major_colours", "MAJOR_SHARE",
-           "doubt_joined", "blend_behind", "blend_alpha", "window_mean", "doubt_across", "doubt_unlike",
+__all__ = ["Plate", "Evidence", "channel_max", "doubtful_pixels", "texture_match", "colour_dist", "colour_gradient",
+           "colour_range", "plate_envelope", "range_dist", "shadow_dist", "colour_set", "in_set", "major_colours",
+           "MAJOR_SHARE", "doubt_joined", "blend_behind", "blend_alpha", "window_mean", "doubt_across", "doubt_unlike",
            "doubt_enclosed", "doubt_pinholes", "reach", "PINHOLE_SHARE"]
 
 
@@ -57,9 +57,18 @@ class Evidence:
     usable: np.ndarray  # bool: where ``background`` is meaningful
 
 
+def channel_max(a: np.ndarray) -> np.ndarray:
+    """``a.max(axis=-1)`` of colours (..., 3): the same values (NaN where a channel is NaN, as there), ~10 x
+    faster: numpy reduces a last axis of three one element at a time (15 of the 58 s of a sequence's
+    silhouettes, 36 frames of 640 x 480, went to such maxima)."""
+    if a.ndim == 0 or a.shape[-1] != 3:
+        return a.max(axis=-1)
+    return np.maximum(np.maximum(a[..., 0], a[..., 1]), a[..., 2])
+
+
 def colour_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Largest per-channel difference (..., ) float32 between RGB arrays (..., 3), 0..255 units."""
-    return np.abs(a.astype(np.int16) - b.astype(np.int16)).max(axis=-1).astype(np.float32)
+    return channel_max(np.abs(a.astype(np.int16) - b.astype(np.int16))).astype(np.float32)
 
 
 def plate_envelope(plate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -72,7 +81,7 @@ def range_dist(img: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Largest per-channel distance (..., ) float32 from ``img`` to the interval [lo, hi]."""
     i = img.astype(np.int16)
     d = np.maximum(lo.astype(np.int16) - i, i - hi.astype(np.int16))
-    return np.maximum(d.max(axis=-1), 0).astype(np.float32)
+    return np.maximum(channel_max(d), 0).astype(np.float32)
 
 
 def shadow_dist(img: np.ndarray, plate: np.ndarray) -> np.ndarray:
@@ -80,7 +89,7 @@ def shadow_dist(img: np.ndarray, plate: np.ndarray) -> np.ndarray:
     i = img.astype(np.float32)
     p = plate.astype(np.float32)
     g = np.clip((i * p).sum(-1) / np.maximum((p * p).sum(-1), 1.0), 0.25, 0.95)
-    return np.abs(i - g[..., None] * p).max(axis=-1)
+    return channel_max(np.abs(i - g[..., None] * p))
 
 
 MAJOR_SHARE = 0.002  # an object colour fills at least this share of the object's pixels (one bin)
@@ -110,7 +119,7 @@ def colour_range(img: np.ndarray) -> np.ndarray:
     """(h, w) int16: the largest channel's 3 x 3 range (max - min) of ``img`` (h, w, C) uint8: an edge
     where it reaches ``2 tau`` (:func:`doubt_joined`, :func:`doubt_enclosed`)."""
     k3 = np.ones((3, 3), np.uint8)
-    return (cv2.dilate(img, k3).astype(np.int16) - cv2.erode(img, k3)).max(axis=-1)
+    return channel_max(cv2.dilate(img, k3).astype(np.int16) - cv2.erode(img, k3))
 
 
 _RAMP_WIN = 9  # shading_ramp's window, pixels
@@ -340,7 +349,7 @@ def doubt_joined(img: np.ndarray, mask: np.ndarray, doubtful: np.ndarray, paper:
         near = cv2.boxFilter(m, -1, (5, 5), normalize=False)
         local = cv2.boxFilter(img.astype(np.float32) * m[..., None], -1, (5, 5), normalize=False)
         local = local / np.maximum(near, 1.0)[..., None]
-        seeds &= ~on_plate | (np.abs(img.astype(np.float32) - local).max(axis=-1) < 2.0 * tau)
+        seeds &= ~on_plate | (channel_max(np.abs(img.astype(np.float32) - local)) < 2.0 * tau)
     keep = np.unique(lab[seeds])
     held = np.isin(lab, keep[keep > 0]) | mask
     ring = (cv2.dilate(held.astype(np.uint8), k3) > 0) & ~held & doubtful
@@ -392,7 +401,7 @@ def blend_alpha(img: np.ndarray, F: np.ndarray, B: np.ndarray, tau: float) -> tu
     colours more than ``3 tau`` apart in some channel."""
     fb = F - B
     alpha = ((img - B) * fb).sum(-1) / np.maximum((fb * fb).sum(-1), 1e-6)
-    return alpha, np.abs(fb).max(-1) > 3.0 * tau
+    return alpha, channel_max(np.abs(fb)) > 3.0 * tau
 
 
 def doubt_across(mask: np.ndarray, joined: np.ndarray, doubtful: np.ndarray, unvouched: np.ndarray,

@@ -24,6 +24,7 @@ from calib.camera import camera_centre_table, plane_homography
 from .silhouette_checks import camera_azimuths_deg
 from .silhouette_doubt import (
     Plate,
+    channel_max,
     chromaticity,
     colour_dist,
     colour_gradient,
@@ -334,7 +335,7 @@ def printed_ground(plate: np.ndarray, trust: np.ndarray, radius_px: float, tau: 
     ground = np.median(chroma, axis=0)
     if np.abs(ground - 1.0 / 3.0).max() < GROUND_CHROMA:
         return None
-    if np.mean(np.abs(chroma - ground).max(axis=-1) < _GROUND_TOL) < GROUND_SHARE:
+    if np.mean(channel_max(np.abs(chroma - ground)) < _GROUND_TOL) < GROUND_SHARE:
         return None
     return ground
 
@@ -344,7 +345,7 @@ def ground_match(img: np.ndarray, ground: np.ndarray, tau: float, noise: float =
     within ``_GROUND_TOL`` plus ``noise`` x ``tau`` over the pixel's R + G + B."""
     chroma, total = chromaticity(img)
     tol = _GROUND_TOL + noise * tau / np.maximum(total, 1.0)
-    return (total >= _GROUND_MIN_SUM) & (np.abs(chroma - ground).max(axis=-1) < tol)
+    return (total >= _GROUND_MIN_SUM) & (channel_max(np.abs(chroma - ground)) < tol)
 
 
 def reached_from_outside(room: np.ndarray, inside: np.ndarray, room_colours: np.ndarray, tau: float,

@@ -137,6 +137,7 @@ from .silhouette_doubt import (
     Plate,
     blend_alpha,
     blend_behind,
+    channel_max,
     colour_dist,
     colour_set,
     doubt_across,
@@ -667,7 +668,7 @@ def held_between(masks: np.ndarray, azimuths_deg: np.ndarray, images: np.ndarray
         for near in ((d < 0) & (d >= -TURN_NEAR_DEG), (d > 0) & (d <= TURN_NEAR_DEG)):
             held = masks[near]
             if images is not None:
-                shade = np.abs(images[near].astype(np.int16) - own).max(axis=-1)
+                shade = channel_max(np.abs(images[near].astype(np.int16) - own))
                 held = held & (shade <= TURN_SHADE_DN)
             sides.append(held.any(axis=0))
         out[i] = sides[0] & sides[1]
@@ -955,7 +956,7 @@ def _outline_support(img, mask, ev: Evidence, tau) -> float:
     if not ring.any():
         return 0.0
     F, has_F = _object_colour_near(img, mask)
-    edge = has_F & (np.abs(img.astype(np.float32) - F).max(axis=-1) > 3.0 * tau)
+    edge = has_F & (channel_max(np.abs(img.astype(np.float32) - F)) > 3.0 * tau)
     supported = edge & (ev.explained | ev.shadow | ~ev.trusted)
     return float(supported[ring].mean())
 

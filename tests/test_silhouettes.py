@@ -1320,3 +1320,18 @@ def test_a_notch_neighbouring_views_leave_out_is_found_a_tunnel_many_see_through
     sliver[30:40, right + 1:right + 3] = True  # two columns beside the outline, above the notch
     kept = _enclosed_parts(notch | sliver, held[side])
     assert kept[notch].all() and not kept[sliver].any()
+
+
+def test_channel_max_is_the_max_over_the_colour_channels():
+    from recon.silhouette_doubt import channel_max
+
+    rng = np.random.default_rng(11)
+    for a in (rng.integers(-300, 300, (5, 7, 3)).astype(np.int16), rng.normal(size=(4, 6, 3)).astype(np.float32),
+              rng.normal(size=(2, 3, 4))):  # (not three channels: numpy's own max)
+        got = channel_max(a)
+        assert got.dtype == a.dtype and got.shape == a.shape[:-1]
+        np.testing.assert_array_equal(got, a.max(axis=-1))
+    a = rng.normal(size=(3, 3, 3)).astype(np.float32)
+    a[1, 1, 2] = np.nan  # NaN where a channel is NaN, as numpy's max
+    assert np.isnan(channel_max(a)[1, 1]) and np.isnan(a.max(axis=-1)[1, 1])
+    np.testing.assert_array_equal(np.isnan(channel_max(a)), np.isnan(a.max(axis=-1)))
