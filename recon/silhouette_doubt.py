@@ -26,10 +26,10 @@ import cv2
 import numpy as np
 from scipy.ndimage import binary_dilation
 
-__all__ = ["Plate", "Evidence", "channel_max", "doubtful_pixels", "texture_match", "colour_dist", "colour_gradient",
-           "colour_range", "plate_envelope", "range_dist", "shadow_dist", "colour_set", "in_set", "major_colours",
-           "MAJOR_SHARE", "doubt_joined", "blend_behind", "blend_alpha", "window_mean", "doubt_across", "doubt_unlike",
-           "doubt_enclosed", "doubt_pinholes", "reach", "PINHOLE_SHARE"]
+__all__ = ["Plate", "Evidence", "channel_max", "channel_sum", "doubtful_pixels", "texture_match", "colour_dist",
+           "colour_gradient", "colour_range", "plate_envelope", "range_dist", "shadow_dist", "colour_set", "in_set",
+           "major_colours", "MAJOR_SHARE", "doubt_joined", "blend_behind", "blend_alpha", "window_mean", "doubt_across",
+           "doubt_unlike", "doubt_enclosed", "doubt_pinholes", "reach", "PINHOLE_SHARE"]
 
 
 @dataclass(frozen=True)
@@ -64,6 +64,14 @@ def channel_max(a: np.ndarray) -> np.ndarray:
     if a.ndim == 0 or a.shape[-1] != 3:
         return a.max(axis=-1)
     return np.maximum(np.maximum(a[..., 0], a[..., 1]), a[..., 2])
+
+
+def channel_sum(a: np.ndarray) -> np.ndarray:
+    """``a.sum(axis=-1)`` of float colours (..., 3), added in the same order, so the same values; ~10 x faster
+    for the same reason as :func:`channel_max`. Integer colours are summed by numpy (its wider result type)."""
+    if a.ndim == 0 or a.shape[-1] != 3 or not np.issubdtype(a.dtype, np.floating):
+        return a.sum(axis=-1)
+    return a[..., 0] + a[..., 1] + a[..., 2]
 
 
 def colour_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -186,7 +194,7 @@ HUE_MIN_SUM = 120  # ... for pixels with r + g + b at least this (a dark pixel's
 def chromaticity(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(..., 3) float32 chromaticity ``rgb / (r + g + b)`` of ``img`` (..., 3) and the sum (...) float32."""
     f = np.asarray(img, np.float32)
-    total = f.sum(axis=-1)
+    total = channel_sum(f)
     return f / np.maximum(total, 1.0)[..., None], total
 
 
@@ -400,7 +408,7 @@ def blend_alpha(img: np.ndarray, F: np.ndarray, B: np.ndarray, tau: float) -> tu
     colour ``F`` and the background's ``B`` (h, w, 3) float32, and where it can be told (h, w) bool: the two
     colours more than ``3 tau`` apart in some channel."""
     fb = F - B
-    alpha = ((img - B) * fb).sum(-1) / np.maximum((fb * fb).sum(-1), 1e-6)
+    alpha = channel_sum((img - B) * fb) / np.maximum(channel_sum(fb * fb), 1e-6)
     return alpha, channel_max(np.abs(fb)) > 3.0 * tau
 
 

@@ -1335,3 +1335,14 @@ def test_channel_max_is_the_max_over_the_colour_channels():
     a[1, 1, 2] = np.nan  # NaN where a channel is NaN, as numpy's max
     assert np.isnan(channel_max(a)[1, 1]) and np.isnan(a.max(axis=-1)[1, 1])
     np.testing.assert_array_equal(np.isnan(channel_max(a)), np.isnan(a.max(axis=-1)))
+
+
+def test_channel_sum_is_numpys_sum_over_the_colour_channels():
+    from recon.silhouette_doubt import channel_sum
+
+    rng = np.random.default_rng(12)
+    for a in (rng.normal(size=(40, 30, 3)).astype(np.float32) * 1e3, rng.normal(size=(6, 5, 3)),
+              rng.integers(0, 256, (4, 4, 3)).astype(np.uint8), rng.normal(size=(2, 3, 4))):
+        got, want = channel_sum(a), a.sum(axis=-1)
+        assert got.dtype == want.dtype and got.shape == want.shape  # (uint8: numpy's wider sum, no wrap-around)
+        np.testing.assert_array_equal(got, want)
