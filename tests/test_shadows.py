@@ -164,3 +164,54 @@ def test_a_boxs_side_of_the_shadows_grey_is_kept():
     box = box[hull_holds(hull, box)]
     assert len(box) > 15000
     assert hull_holds(out, box).mean() > 0.999
+
+
+def _block_hull():
+    """A body (a post standing on the table, 3 x 40 x 3 voxels) with a slab at its foot (the skirt), as inside
+    voxels of a 30 x 44 x 30 grid; the slab is what the carving takes."""
+    inside = np.zeros((30, 44, 30), bool)
+    inside[13:16, 1:41, 13:16] = True  # the post
+    inside[2:28, 1:6, 2:28] = True  # the skirt round its foot
+    return inside
+
+
+def test_streaks_the_guard_gave_back_are_dropped_however_large():
+    """The guard gives back voxels along the rays of pixels it holds for the object: under a chair's seat they
+    are streaks through the skirt which, once the skirt round them is carved, are pieces cut loose. Weighed
+    with them the pieces were parts of the object, and the whole skirt was kept (2.86 % of the diagonal)."""
+    from recon.shadows import SMALL_PIECE, drop_cut_pieces
+
+    inside = _block_hull()
+    new = np.where(inside, 1.0, -1.0).astype(np.float32)
+    carved = inside.copy()
+    carved[13:16, 1:41, 13:16] = False  # the carving took the skirt, not the post
+    new[carved] = -0.5
+    restored = np.zeros_like(inside)
+    for x in range(4, 26, 3):  # streaks given back, joined along the table: one piece, 16 % of the post
+        restored[x, 1:6, 4] = True
+    restored[4:26, 1, 4] = True
+    new[restored] = 1.0
+    assert restored.sum() >= SMALL_PIECE * (new > 0).sum()  # large enough to count as a part when weighed whole
+    out = drop_cut_pieces(new, inside, restored, 1.0)
+    assert out is not None
+    assert not (out[restored] > 0).any()  # the streaks are gone
+    assert (out[13:16, 1:41, 13:16] > 0).all()  # the post is kept
+    # the same piece not given back is a part of the object the carving cut off: nothing is carved
+    assert drop_cut_pieces(new, inside, np.zeros_like(inside), 1.0) is None
+
+
+def test_a_part_cut_off_refuses_the_carving_and_crumbs_go():
+    from recon.shadows import drop_cut_pieces
+
+    inside = _block_hull()
+    new = np.where(inside, 1.0, -1.0).astype(np.float32)
+    new[2:28, 1:6, 2:28] = -0.5
+    new[13:16, 1:41, 13:16] = 1.0
+    new[13:16, 1:6, 13:16] = -0.5  # the post's foot carved: the post no longer stands on the table
+    assert drop_cut_pieces(new, inside, np.zeros_like(inside), 1.0) is None
+    new[13:16, 1:6, 13:16] = 1.0
+    new[3, 1, 3] = 1.0  # one voxel of the skirt left: a crumb
+    out = drop_cut_pieces(new, inside, np.zeros_like(inside), 1.0)
+    assert out is not None and out[3, 1, 3] < 0 and (out[13:16, 1:41, 13:16] > 0).all()
+    new[2:8, 1:6, 2:8] = 1.0  # a block of the skirt left: 180 voxels, > 2 % of the post's 360
+    assert drop_cut_pieces(new, inside, np.zeros_like(inside), 1.0) is None
