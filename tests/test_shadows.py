@@ -215,3 +215,59 @@ def test_a_part_cut_off_refuses_the_carving_and_crumbs_go():
     assert out is not None and out[3, 1, 3] < 0 and (out[13:16, 1:41, 13:16] > 0).all()
     new[2:8, 1:6, 2:8] = 1.0  # a block of the skirt left: 180 voxels, > 2 % of the post's 360
     assert drop_cut_pieces(new, inside, np.zeros_like(inside), 1.0) is None
+
+
+def _seat_hull():
+    """A stool: a seat (26 x 3 x 26 voxels at 30-33) on four posts, a skirt under it down to the table (1-16)."""
+    inside = np.zeros((30, 40, 30), bool)
+    inside[2:28, 30:33, 2:28] = True  # the seat
+    for x in (2, 25):
+        for z in (2, 25):
+            inside[x:x + 3, 1:30, z:z + 3] = True  # the posts
+    inside[3:27, 1:16, 3:27] = True  # the skirt between and round them
+    return inside
+
+
+def test_the_rest_of_a_skirt_under_the_seat_is_dropped_a_block_in_the_open_or_a_bar_is_not():
+    """The carving took a stool's skirt but its core under the seat's centre (in a darker shade than the shadow's,
+    which nothing releases): cut loose, resting on the table under the seat, it is the skirt's rest and goes. A
+    piece cut loose that stands in the open (a block beside a post) or floats (a bar between the posts)
+    refuses the carving: the object is never eaten (a plinth cut from its figure leaves the figure off the table,
+    which refuses it too)."""
+    from recon.shadows import drop_cut_pieces
+
+    inside = _seat_hull()
+    new = np.where(inside, 1.0, -1.0).astype(np.float32)
+    new[3:27, 1:16, 3:27] = -0.5  # the skirt carved ...
+    for x in (2, 25):
+        for z in (2, 25):
+            new[x:x + 3, 1:30, z:z + 3] = 1.0  # ... not the posts
+    new[11:19, 1:14, 11:19] = 1.0  # ... nor its core: 832 voxels, far over SMALL_PIECE of the stool
+    none = np.zeros_like(inside)
+    out = drop_cut_pieces(new, inside, none, 1.0)
+    assert out is not None
+    assert (out[11:19, 1:14, 11:19] < 0).all() and (out[2:28, 30:33, 2:28] > 0).all()
+    # a post with a block beside it, joined by a slab on the table that the carving takes: the block, cut loose,
+    # stands in the open (nothing of the body above it): a part, and nothing is carved; under a seat it would go
+    post = np.zeros((30, 40, 30), bool)
+    post[2:8, 1:40, 2:8] = True
+    post[12:20, 1:12, 12:20] = True  # the block, 704 voxels
+    post[5:16, 1:4, 5:16] = True  # the slab joining them
+    new2 = np.where(post, 1.0, -1.0).astype(np.float32)
+    slab = np.zeros_like(post)
+    slab[5:16, 1:4, 5:16] = True
+    slab[2:8, :, 2:8] = False
+    slab[12:20, :, 12:20] = False
+    new2[slab] = -0.5
+    assert drop_cut_pieces(new2, post, none, 1.0) is None
+    seat = post.copy()
+    seat[2:22, 30:33, 2:22] = True
+    new3 = np.where(seat, 1.0, -1.0).astype(np.float32)
+    new3[slab] = -0.5
+    out3 = drop_cut_pieces(new3, seat, none, 1.0)
+    assert out3 is not None and (out3[12:20, 1:12, 12:20] < 0).all() and (out3[2:8, 1:40, 2:8] > 0).all()
+    # a bar between two posts, floating once the skirt under it is carved
+    bar = new.copy()
+    bar[11:19, 1:14, 11:19] = -0.5
+    bar[5:25, 8:10, 13:15] = 1.0  # a bar joined to nothing after the carving (its ends carved)
+    assert drop_cut_pieces(bar, inside, none, 1.0) is None
