@@ -319,6 +319,7 @@ def drop_cut_pieces(new: np.ndarray, inside: np.ndarray, restored: np.ndarray, v
     sizes = np.bincount(lab.ravel(), minlength=n + 1)
     sizes[0] = 0
     big = int(np.argmax(sizes))
+    low = int(np.argwhere(inside)[:, 1].min())  # the hull's lowest layer: the table
     out = new.copy()
     if n > 1:
         lab0, _ = ndimage.label(inside)
@@ -327,13 +328,11 @@ def drop_cut_pieces(new: np.ndarray, inside: np.ndarray, restored: np.ndarray, v
         parent[labels] = lab0.ravel()[first]  # carving only removes: each piece lies in one piece of before
         cut = (parent == parent[big]) & (np.arange(n + 1) != big) & (np.arange(n + 1) > 0)
         own = sizes - np.bincount(lab.ravel(), weights=restored.ravel(), minlength=n + 1).astype(np.int64)
-        low = int(np.argwhere(inside)[:, 1].min())
         for p in np.flatnonzero(cut & (own >= SMALL_PIECE * sizes[big])):
             if not _rest_under_the_body(lab, int(p), big, low):
                 return None  # a part of the object: the carving cut it
         crumbs = cut[lab]
         out[crumbs] = np.minimum(out[crumbs], -0.5 * voxel_mm)
-    low = int(np.argwhere(inside)[:, 1].min())
     if not (lab[:, : low + 2, :] == big).any():
         return None  # the object no longer stands on the table: its foot was taken for the shadow
     return out
@@ -343,8 +342,8 @@ def _rest_under_the_body(lab: np.ndarray, piece: int, big: int, low: int) -> boo
     """Whether piece ``piece`` of the labelled grid ``lab`` rests on the table (its lowest voxel within two of the
     hull's lowest, ``low``) wholly under the body ``big``: at least ``UNDER_SHARE`` of its columns (x, z) hold a
     voxel of the body, i.e. it is the rest of a skirt under an overhang (the centre under a chair's seat, in a shade
-    darker than the shadow's, which no rule releases), not a part standing on its own (a plinth cut from a figure:
-    its top is open to the sky)."""
+    darker than the shadow's, which no rule releases), not a part standing on its own (a block beside a post, open
+    to the sky above)."""
     sel = lab == piece
     if not sel[:, : low + 2, :].any():
         return False  # it floats: a part (a bar between legs) the carving cut off
