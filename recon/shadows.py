@@ -319,7 +319,7 @@ def drop_cut_pieces(new: np.ndarray, inside: np.ndarray, restored: np.ndarray, v
     sizes = np.bincount(lab.ravel(), minlength=n + 1)
     sizes[0] = 0
     big = int(np.argmax(sizes))
-    low = int(np.argwhere(inside)[:, 1].min())  # the hull's lowest layer: the table
+    low = int(np.flatnonzero(inside.any(axis=(0, 2)))[0])  # the hull's lowest layer: the table
     out = new.copy()
     if n > 1:
         lab0, _ = ndimage.label(inside)
@@ -328,8 +328,9 @@ def drop_cut_pieces(new: np.ndarray, inside: np.ndarray, restored: np.ndarray, v
         parent[labels] = lab0.ravel()[first]  # carving only removes: each piece lies in one piece of before
         cut = (parent == parent[big]) & (np.arange(n + 1) != big) & (np.arange(n + 1) > 0)
         own = sizes - np.bincount(lab.ravel(), weights=restored.ravel(), minlength=n + 1).astype(np.int64)
+        body_cols = (lab == big).any(axis=1)
         for p in np.flatnonzero(cut & (own >= SMALL_PIECE * sizes[big])):
-            if not _rest_under_the_body(lab, int(p), big, low):
+            if not _rest_under_the_body(lab == p, body_cols, low):
                 return None  # a part of the object: the carving cut it
         crumbs = cut[lab]
         out[crumbs] = np.minimum(out[crumbs], -0.5 * voxel_mm)
@@ -338,14 +339,12 @@ def drop_cut_pieces(new: np.ndarray, inside: np.ndarray, restored: np.ndarray, v
     return out
 
 
-def _rest_under_the_body(lab: np.ndarray, piece: int, big: int, low: int) -> bool:
-    """Whether piece ``piece`` of the labelled grid ``lab`` rests on the table (its lowest voxel within two of the
-    hull's lowest, ``low``) wholly under the body ``big``: at least ``UNDER_SHARE`` of its columns (x, z) hold a
-    voxel of the body, i.e. it is the rest of a skirt under an overhang (the centre under a chair's seat, in a shade
-    darker than the shadow's, which no rule releases), not a part standing on its own (a block beside a post, open
-    to the sky above)."""
-    sel = lab == piece
-    if not sel[:, : low + 2, :].any():
+def _rest_under_the_body(piece: np.ndarray, body_cols: np.ndarray, low: int) -> bool:
+    """Whether the piece (a bool grid) rests on the table (its lowest voxel within two of the hull's lowest layer,
+    ``low``) wholly under the body: at least ``UNDER_SHARE`` of its columns (x, z) hold a voxel of the body
+    (``body_cols``, (x, z) bool), i.e. it is the rest of a skirt under an overhang (the centre under a chair's seat,
+    in a shade darker than the shadow's, which no rule releases), not a part standing on its own (a block beside a
+    post, open to the sky above)."""
+    if not piece[:, : low + 2, :].any():
         return False  # it floats: a part (a bar between legs) the carving cut off
-    cols = sel.any(axis=1)
-    return bool((lab == big).any(axis=1)[cols].mean() >= UNDER_SHARE)
+    return bool(body_cols[piece.any(axis=1)].mean() >= UNDER_SHARE)
