@@ -184,6 +184,17 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
                 f"silhouettes leave over it carved ({mm3 / 1000.0:.1f} cm³)")
         progress.note(f"hull: {note}")
         carved.report.setdefault("notes", []).append(note)
+    if roofs:
+        from recon.faces import carve_under_slabs
+
+        with progress.stage("under slabs"):  # the wedge the silhouettes leave under a seat, which no view sees
+            hull, unders = carve_under_slabs(hull, [face for face, _ in roofs], masks, K, Ts)
+        for slab, mm3 in unders:
+            note = (f"a slab under the flat top {slab.top.height_mm:.1f} mm above the table, its underside at "
+                    f"{slab.underside_mm:.1f} mm: the space under it that no view sees, between what the views "
+                    f"do see there, carved ({mm3 / 1000.0:.1f} cm³)")
+            progress.note(f"hull: {note}")
+            carved.report.setdefault("notes", []).append(note)
 
     from recon.sides import flatten_sides
 
