@@ -488,7 +488,15 @@ def carve_under_slabs(hull: VoxelHull, faces: list[Face], masks, K, Ts) -> tuple
         run = np.where(unseen.all(axis=1), len(ys), np.argmin(unseen, axis=1))  # unseen voxels from the top
         reach = np.where(held.all(axis=1), len(ys), np.argmin(held, axis=1))  # the hull's run from the top
         # the column ends in free space under its unseen voxels, but for the tip the views past the edge graze
-        carve_cols = (run > 0) & (reach < len(ys)) & (reach - run <= max(int(round(TIP_MM / v)), 1))
+        # the column's hull ends in free space above the table (down to it, it stands there: a leg)
+        ends = (run > 0) & (o[1] + (iy_top - reach) * v >= MIN_HEIGHT_MM)
+        carve_cols = ends & (reach - run <= max(int(round(TIP_MM / v)), 1))
+        # and a needle: a column or two thin that a few views' masks hold on down, among carved ones (it hung from
+        # the white chair's seat, 20 mm long, where the wedge had hidden it)
+        kept = np.zeros(inside.shape[::2], bool)
+        kept[cx[ends & ~carve_cols], cz[ends & ~carve_cols]] = True
+        kept &= ~ndimage.binary_opening(kept, np.ones((3, 3), bool))
+        carve_cols |= ends & kept[cx, cz]
         if not carve_cols.any():
             continue
         cols = [(x, z, n) for x, z, n in zip(cx[carve_cols], cz[carve_cols], reach[carve_cols], strict=True)]

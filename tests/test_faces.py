@@ -4,6 +4,8 @@ silhouettes leave over a white box's sides carved between its corners; round sid
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from synthetic_images import hull_holds, turntable_ring
@@ -221,6 +223,24 @@ def test_the_space_under_a_seat_that_no_view_sees_is_carved(stool_scene):
     true = sum(np.prod(hi - lo) for lo, hi in STOOL)
     assert (roofed.values > 0).sum() * v ** 3 > 1.4 * true
     assert (carved.values > 0).sum() * v ** 3 < 1.15 * true
+
+
+def test_a_needle_a_few_masks_hold_under_the_seat_goes_with_the_wedge(stool_scene):
+    """A column one voxel thin under the seat's middle, held on down past the wedge to 20 mm (as a few views' masks
+    holding a flap there would): where the wedge hid it, it would hang from the seat as a needle. It goes too."""
+    masks, T, roofed, tops = stool_scene
+    vals = roofed.values.copy()
+    v = roofed.voxel_mm
+    ix, iz = (np.rint((np.zeros(2) - roofed.origin_table[[0, 2]]) / v)).astype(int)
+    iy = np.arange(int(np.ceil((20.0 - roofed.origin_table[1]) / v)), int((45.0 - roofed.origin_table[1]) / v))
+    vals[ix, iy, iz] = v
+    needled = dataclasses.replace(roofed, values=vals)
+    needle = np.array([[0.0, y, 0.0] for y in (21.0, 25.0, 30.0, 40.0)])
+    assert hull_holds(needled, needle).all()
+    carved, slabs = carve_under_slabs(needled, tops, masks, K, T)
+    assert len(slabs) == 1 and not hull_holds(carved, needle).any()
+    for lo, hi in STOOL:
+        assert hull_holds(carved, _inner_grid(lo, hi, v)).all()
 
 
 def test_a_box_under_an_overhanging_lid_keeps_its_body():
