@@ -381,6 +381,7 @@ SLAB_BREAK = 0.8  # ... and less than this share SLAB_BREAK_MM lower: a slab's e
 SLAB_BREAK_MM = 3.0
 FOOTPRINT_MM = 3.0  # a top's footprint: the hull's section just under it within this of the face
 TIP_MM = 2.0  # under a slab's unseen voxels the hull may go on this far (the wedge's tip, which views graze)
+_CHUNK_COLUMNS = 20_000
 
 
 @dataclass(frozen=True)
@@ -459,6 +460,7 @@ def carve_under_slabs(hull: VoxelHull, faces: list[Face], masks, K, Ts) -> tuple
     V = len(Ts)
     done = []
     for face in faces:
+        # on the hull as it came: on the one carved under a slab, the same top found again 0.5 mm up made another
         slab = _slab_under(face, hull)
         if slab is None:
             continue
@@ -478,18 +480,21 @@ def carve_under_slabs(hull: VoxelHull, faces: list[Face], masks, K, Ts) -> tuple
         cx, cz = np.nonzero(on & inside[:, iy_top, :])
         if not len(cx):
             continue
-        ys = np.arange(iy_top + 1)
-        pts = np.stack(np.broadcast_arrays(cx[:, None], ys[None, :], cz[:, None]), -1).reshape(-1, 3)
-        held = inside[pts[:, 0], pts[:, 1], pts[:, 2]]
-        unseen = np.zeros(len(pts), bool)
-        unseen[held] = _hidden_counts(slab, o + pts[held] * v, Ts) >= V - 1
-        unseen = unseen.reshape(len(cx), len(ys))[:, ::-1]  # per column, from the underside down
-        held = held.reshape(len(cx), len(ys))[:, ::-1]
-        run = np.where(unseen.all(axis=1), len(ys), np.argmin(unseen, axis=1))  # unseen voxels from the top
-        reach = np.where(held.all(axis=1), len(ys), np.argmin(held, axis=1))  # the hull's run from the top
-        # the column ends in free space under its unseen voxels, but for the tip the views past the edge graze
-        # the column's hull ends in free space above the table (down to it, it stands there: a leg)
+        # per column, from the underside down: the hull's voxels, and those no view but one sees (in chunks of
+        # columns: a wide top over a tall grid would hold a GB of points at once)
+        held = inside[cx, iy_top::-1, cz]  # (columns, layers)
+        unseen = np.zeros_like(held)
+        ys = o[1] + (iy_top - np.arange(iy_top + 1)) * v
+        for c0 in range(0, len(cx), _CHUNK_COLUMNS):
+            sel = slice(c0, c0 + _CHUNK_COLUMNS)
+            k, m = np.nonzero(held[sel])
+            pts = np.column_stack([o[0] + cx[sel][k] * v, ys[m], o[2] + cz[sel][k] * v])
+            unseen[sel][k, m] = _hidden_counts(slab, pts, Ts) >= V - 1
+        run = np.where(unseen.all(axis=1), unseen.shape[1], np.argmin(unseen, axis=1))  # unseen voxels from the top
+        reach = np.where(held.all(axis=1), held.shape[1], np.argmin(held, axis=1))  # the hull's run from the top
+        # the column's hull ends in free space above the table (down to it, it stands there: a leg) ...
         ends = (run > 0) & (o[1] + (iy_top - reach) * v >= MIN_HEIGHT_MM)
+        # ... right under its unseen voxels, but for the tip the views past the slab's edge graze
         carve_cols = ends & (reach - run <= max(int(round(TIP_MM / v)), 1))
         # and a needle: a column or two thin that a few views' masks hold on down, among carved ones (it hung from
         # the white chair's seat, 20 mm long, where the wedge had hidden it)
