@@ -171,6 +171,12 @@ def test_a_white_boxs_flat_top_is_found_and_the_roof_over_it_carved(box_scene):
     assert (carved.values > 0).sum() * v ** 3 < 1.12 * true
 
 
+def _inner_grid(lo, hi, v):
+    """Voxel centres a voxel or more inside the box (lo, hi)."""
+    return np.stack(np.meshgrid(*[np.arange(a + v, b - v, v) for a, b in zip(lo, hi, strict=True)], indexing="ij"),
+                    -1).reshape(-1, 3)
+
+
 def test_a_seats_underside_edge_is_no_top_and_the_seat_keeps_its_inside():
     """A stool's seat, 6 mm thick on four legs, seen by 36 views: its lower edge is a horizontal outline at
     45 mm that the views put on the same texels, and rectified onto that plane they see the plain seat
@@ -185,17 +191,9 @@ def test_a_seats_underside_edge_is_no_top_and_the_seat_keeps_its_inside():
     faces = find_faces(images, masks, K, T, hull)
     assert [round(f.height_mm) for f in faces] == [51]
     carved, _ = carve_above_faces(hull, images, masks, K, T)
-    v = hull.voxel_mm
-    g = np.stack(np.meshgrid(*[np.arange(lo + v, hi - v, v) for lo, hi in zip(SLAB_LO, SLAB_HI, strict=True)],
-                             indexing="ij"), -1).reshape(-1, 3)
+    g = _inner_grid(SLAB_LO, SLAB_HI, hull.voxel_mm)
     assert hull_holds(hull, g).all()
     assert hull_holds(carved, g).all(), (~hull_holds(carved, g)).sum()
-
-
-def _inner_grid(lo, hi, v):
-    """Voxel centres a voxel or more inside the box (lo, hi)."""
-    return np.stack(np.meshgrid(*[np.arange(a + v, b - v, v) for a, b in zip(lo, hi, strict=True)], indexing="ij"),
-                    -1).reshape(-1, 3)
 
 
 @pytest.fixture(scope="module")
@@ -247,7 +245,7 @@ def test_a_box_under_an_overhanging_lid_keeps_its_body():
     """A lid 5 mm thick overhanging its box by 8 mm is a slab too, and the box's middle is hidden behind it
     from every view, as the stool's wedge is; but the hull goes on under it down to the table (the box's sides,
     which the views do see): nothing of the box is carved. (Under the overhang only a little near its corners:
-elsewhere the views past its edge see the box's side, and so hold what lies in front of it.)"""
+    elsewhere the views past its edge see the box's side, and so hold what lies in front of it.)"""
     T = turntable_ring(36, look_y_mm=25.0)
     images, masks = _render(T, "lidbox", np.random.default_rng(7))
     hull = _hull(masks, T)
