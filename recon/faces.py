@@ -315,6 +315,16 @@ def _coverage(pts: np.ndarray, K, T, shape) -> np.ndarray:
     return cv2.dilate(cov, np.ones((3, 3), np.uint8)) > 0
 
 
+def _on_raster(region: np.ndarray, face: Face, x: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Bool, ``x``'s shape: the table points (``x``, ``z``) mm on ``region``, a raster of ``face``'s (off it: False)."""
+    i = np.rint((z - face.origin_xz[1]) * face.px_per_mm).astype(int)
+    j = np.rint((x - face.origin_xz[0]) * face.px_per_mm).astype(int)
+    nz, nx = region.shape
+    on = (i >= 0) & (j >= 0) & (i < nz) & (j < nx)
+    on[on] &= region[i[on], j[on]]
+    return on
+
+
 def _uncovered_share(inside: np.ndarray, trial: np.ndarray, hull: VoxelHull, masks, K, Ts) -> float:
     """The largest share of a view's silhouette that carving ``inside`` down to ``trial`` leaves with no hull behind."""
     shape = masks[0].shape
@@ -335,12 +345,7 @@ def carve_above_faces(hull: VoxelHull, images_rgb, masks, K, Ts) -> tuple[VoxelH
         inside = vals > 0
         idx = np.argwhere(inside)
         pts = o + idx * v
-        px, (x0, z0) = face.px_per_mm, face.origin_xz
-        j = np.rint((pts[:, 0] - x0) * px).astype(int)
-        i = np.rint((pts[:, 2] - z0) * px).astype(int)
-        nz, nx = face.region.shape
-        col = (i >= 0) & (j >= 0) & (i < nz) & (j < nx)
-        col[col] &= face.region[i[col], j[col]]
+        col = _on_raster(face.region, face, pts[:, 0], pts[:, 2])
         above = col & (pts[:, 1] > face.height_mm + MARGIN_MM)
         if not above.any():
             continue
@@ -417,9 +422,7 @@ def _slab_under(face: Face, hull: VoxelHull) -> Slab | None:
 
 def _hidden_counts(slab: Slab, pts: np.ndarray, Ts) -> np.ndarray:
     """(N,) the views in which the ray to each point (below the slab) crosses the slab's underside first."""
-    face, h = slab.top, slab.underside_mm
-    px, (x0, z0) = face.px_per_mm, face.origin_xz
-    nz, nx = slab.footprint.shape
+    h = slab.underside_mm
     count = np.zeros(len(pts), np.int32)
     for T in Ts:
         c = camera_centre_table(T)
@@ -427,11 +430,7 @@ def _hidden_counts(slab: Slab, pts: np.ndarray, Ts) -> np.ndarray:
             continue
         s = (h - c[1]) / (pts[:, 1] - c[1])
         P = c + s[:, None] * (pts - c)
-        j = np.rint((P[:, 0] - x0) * px).astype(int)
-        i = np.rint((P[:, 2] - z0) * px).astype(int)
-        ok = (i >= 0) & (j >= 0) & (i < nz) & (j < nx)
-        ok[ok] &= slab.footprint[i[ok], j[ok]]
-        count += ok
+        count += _on_raster(slab.footprint, slab.top, P[:, 0], P[:, 2])
     return count
 
 
@@ -466,17 +465,13 @@ def carve_under_slabs(hull: VoxelHull, faces: list[Face], masks, K, Ts) -> tuple
             continue
         inside = vals > 0
         h = slab.underside_mm
-        px, (x0, z0) = face.px_per_mm, face.origin_xz
         # the footprint's columns of the grid, and their voxels from the underside down
         iy_top = int(math.floor((h - o[1]) / v - 0.5))  # the highest layer whose centre lies under the underside
         if iy_top < 1:
             continue
         nx_, _, nz_ = inside.shape
         gx, gz = np.meshgrid(np.arange(nx_), np.arange(nz_), indexing="ij")
-        j = np.rint((o[0] + gx * v - x0) * px).astype(int)
-        i = np.rint((o[2] + gz * v - z0) * px).astype(int)
-        on = (i >= 0) & (j >= 0) & (i < slab.footprint.shape[0]) & (j < slab.footprint.shape[1])
-        on[on] &= slab.footprint[i[on], j[on]]
+        on = _on_raster(slab.footprint, face, o[0] + gx * v, o[2] + gz * v)
         cx, cz = np.nonzero(on & inside[:, iy_top, :])
         if not len(cx):
             continue
