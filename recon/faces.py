@@ -180,10 +180,18 @@ def find_faces(images_rgb, masks, K, Ts, hull: VoxelHull) -> list[Face]:
             above = range(k + max(int(round(1.0 / step)), 1), min(k + int(round(RISE_MM / step)) + 1, len(heights)))
             if not inner.any() or any((outline(j, share) & inner).sum() > RISE_SHARE * inner.sum() for j in above):
                 continue
-            if _stands_high(face, hull, Ts):
+            if _stands_high(face, hull, Ts) or _found_already(face, faces):
                 continue
             faces.append(face)
     return [f for f in faces if not _under_a_top(f, faces)]
+
+
+def _found_already(face: Face, faces: list[Face]) -> bool:
+    """Whether a face found less than ``PEAK_OFFSET_MM`` lower holds most of ``face``: the same top, its peak
+    found again at the next height with the looser edge share (a chair's seat at 51.0 and 51.5 mm)."""
+    area = face.region.sum()
+    return any(face.height_mm - other.height_mm < PEAK_OFFSET_MM
+               and (face.region & other.region).sum() >= UNDER_SHARE * area for other in faces)
 
 
 def _under_a_top(face: Face, faces: list[Face]) -> bool:

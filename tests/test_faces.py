@@ -327,3 +327,29 @@ def test_round_sides_have_no_corners_and_keep_their_hull(shape):
     hull = _hull(masks, T)
     flat, sides = flatten_sides(hull, images, masks, K, T)
     assert sides == [] and np.array_equal(flat.values, hull.values)
+
+
+def test_a_top_found_again_half_a_mm_higher_is_the_same_top():
+    """A seat's top peaks at 51.0 mm with the strict edge share and at 51.5 mm with the looser one: one top
+    (a second one carved nothing and put "0.0 cm³" in the summary). A face 3 mm higher over the same
+    region (a slab's lower edge and its top) or one beside it is another face."""
+    from recon.faces import Face, _found_already
+
+    region = np.zeros((40, 40), bool)
+    region[5:30, 5:30] = True
+    beside = np.zeros_like(region)
+    beside[5:30, 32:39] = True
+
+    def face(h, r):
+        return Face(h, r, np.zeros((40, 40, 3), np.float32), (0.0, 0.0), 3.0)
+
+    found = [face(51.0, region)]
+    assert _found_already(face(51.5, region), found)
+    assert not _found_already(face(54.0, region), found)
+    assert not _found_already(face(51.5, beside), found)
+
+
+def test_a_volume_in_a_note_is_never_zero_cm3():
+    from turntable.stages.hull import volume_text
+
+    assert volume_text(24_400.0) == "24.4 cm³" and volume_text(40.0) == "40 mm³"

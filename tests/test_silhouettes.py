@@ -209,7 +209,9 @@ def test_a_thin_object_small_in_every_frame_is_not_empty():
     area[3], area[7] = 150.0, 0.0
     _, status = frame_status(area, np.ones(V), np.zeros(V), region, (640, 480))
     assert [i for i, s in enumerate(status) if s != "ok"] == [3, 5, 7], status
-    assert status[3] == "rejected: empty silhouette (150 px)" and status[7] == "rejected: empty silhouette (0 px)"
+    assert status[3] == ("rejected: nearly empty silhouette (150 px: 0.1 % of the working volume's image, "
+                         "10 % of the median frame's)"), status[3]
+    assert status[7] == "rejected: empty silhouette (0 px)"
     assert "area jumps" in status[5], status  # two of its four neighbours empty
     _, specks = frame_status(np.full(V, 150.0), np.ones(V), np.zeros(V), region, (640, 480))
     assert all("empty silhouette" in s for s in specks), specks

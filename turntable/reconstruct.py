@@ -172,7 +172,7 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
         if skirt is not None:
             note = (f"a cast shadow ({skirt.ratio:.2f} of the lit paper's grey, seen in {skirt.views} views) held in "
                     f"the silhouettes: the skirt it left within {SKIRT_MM:.0f} mm of the table carved "
-                    f"({skirt.volume_mm3 / 1000.0:.1f} cm³)")
+                    f"({hull_stage.volume_text(skirt.volume_mm3)})")
             progress.note(f"hull: {note}")
             carved.report.setdefault("notes", []).append(note)
     from recon.faces import carve_above_faces
@@ -181,7 +181,7 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
         hull, roofs = carve_above_faces(hull, images_rgb, masks, K, Ts)
     for face, mm3 in roofs:
         note = (f"a flat top {face.height_mm:.1f} mm above the table ({face.area_mm2:.0f} mm²): the roof the "
-                f"silhouettes leave over it carved ({mm3 / 1000.0:.1f} cm³)")
+                f"silhouettes leave over it carved ({hull_stage.volume_text(mm3)})")
         progress.note(f"hull: {note}")
         carved.report.setdefault("notes", []).append(note)
     if roofs:
@@ -192,7 +192,7 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
         for slab, mm3 in unders:
             note = (f"a slab under the flat top {slab.top.height_mm:.1f} mm above the table, its underside at "
                     f"{slab.underside_mm:.1f} mm: the space under it that no view sees, between what the views "
-                    f"do see there, carved ({mm3 / 1000.0:.1f} cm³)")
+                    f"do see there, carved ({hull_stage.volume_text(mm3)})")
             progress.note(f"hull: {note}")
             carved.report.setdefault("notes", []).append(note)
 
@@ -203,7 +203,7 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
     if sides:
         lo, hi = min(s.lo_mm for s in sides), max(s.hi_mm for s in sides)
         note = (f"flat sides between corners from {lo:.1f} to {hi:.1f} mm above the table: the tent the silhouettes "
-                f"leave over them carved ({sum(s.volume_mm3 for s in sides) / 1000.0:.1f} cm³)")
+                f"leave over them carved ({hull_stage.volume_text(sum(s.volume_mm3 for s in sides))})")
         progress.note(f"hull: {note}")
         carved.report.setdefault("notes", []).append(note)
 

@@ -27,6 +27,11 @@ class GridTooLarge(UserError):
     """``--resolution`` asks for a grid that does not fit in memory (refused before it is allocated)."""
 
 
+def volume_text(mm3: float) -> str:
+    """A carved or dropped volume for a note: cm³ from 0.1 cm³, mm³ below (never "0.0 cm³")."""
+    return f"{mm3 / 1000.0:.1f} cm³" if mm3 >= 100.0 else f"{mm3:.0f} mm³"
+
+
 def carve_hull(masks, K, Ts, opts, cache, key, progress, vol, rejections: int | None = None, images=None,
                held=None):
     """The visual hull of ``masks`` in the working volume ``vol`` (cached under ``key``); a voxel is carved where
@@ -299,7 +304,7 @@ def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progres
             doubtful_wall.append(note)
             progress.note(f"working volume: {note}")
     if floating:
-        size = f"{sum(floating) / 1000:.1f} cm³" if sum(floating) >= 100 else f"{sum(floating):.1f} mm³"
+        size = volume_text(sum(floating))
         doubtful_wall.append(f"{len(floating)} piece(s) of the hull float above the table, apart from the object "
                              f"({size}: space every view's silhouette left uncarved, which no object standing on "
                              f"the turntable can fill): dropped")
