@@ -53,7 +53,7 @@ from calib.camera import camera_centre_table, plane_homography, project_points
 from .silhouette_doubt import channel_max
 from .types import VoxelHull
 
-__all__ = ["Face", "Slab", "find_faces", "carve_above_faces", "carve_under_slabs"]
+__all__ = ["Face", "Slab", "find_faces", "carve_above_faces", "carve_under_slabs", "same_top"]
 
 STEP_MM = 0.5  # the sweep's step in height
 PX_PER_MM = 3.0  # the planes' raster ...
@@ -180,18 +180,18 @@ def find_faces(images_rgb, masks, K, Ts, hull: VoxelHull) -> list[Face]:
             above = range(k + max(int(round(1.0 / step)), 1), min(k + int(round(RISE_MM / step)) + 1, len(heights)))
             if not inner.any() or any((outline(j, share) & inner).sum() > RISE_SHARE * inner.sum() for j in above):
                 continue
-            if _stands_high(face, hull, Ts) or _found_already(face, faces):
+            if _stands_high(face, hull, Ts):
                 continue
             faces.append(face)
     return [f for f in faces if not _under_a_top(f, faces)]
 
 
-def _found_already(face: Face, faces: list[Face]) -> bool:
-    """Whether a face found less than ``PEAK_OFFSET_MM`` lower holds most of ``face``: the same top, its peak
-    found again at the next height with the looser edge share (a chair's seat at 51.0 and 51.5 mm)."""
-    area = face.region.sum()
-    return any(face.height_mm - other.height_mm < PEAK_OFFSET_MM
-               and (face.region & other.region).sum() >= UNDER_SHARE * area for other in faces)
+def same_top(face: Face, lower: Face) -> bool:
+    """Whether ``lower``, found less than ``PEAK_OFFSET_MM`` under ``face``, holds most of it: one top whose
+    peak was found again at the next height with the looser edge share (a chair's seat at 51.0 and 51.5 mm).
+    Both carve (the second where the first's region ends); the run notes them as one top."""
+    return (0.0 <= face.height_mm - lower.height_mm < PEAK_OFFSET_MM
+            and (face.region & lower.region).sum() >= UNDER_SHARE * face.region.sum())
 
 
 def _under_a_top(face: Face, faces: list[Face]) -> bool:

@@ -331,9 +331,9 @@ def test_round_sides_have_no_corners_and_keep_their_hull(shape):
 
 def test_a_top_found_again_half_a_mm_higher_is_the_same_top():
     """A seat's top peaks at 51.0 mm with the strict edge share and at 51.5 mm with the looser one: one top
-    (a second one carved nothing and put "0.0 cm³" in the summary). A face 3 mm higher over the same
-    region (a slab's lower edge and its top) or one beside it is another face."""
-    from recon.faces import Face, _found_already
+    (noted twice, the second "0.0 cm³"). A face 3 mm higher over the same region (a slab's lower edge and
+    its top), one beside it, or one lower is another."""
+    from recon.faces import Face, same_top
 
     region = np.zeros((40, 40), bool)
     region[5:30, 5:30] = True
@@ -343,10 +343,11 @@ def test_a_top_found_again_half_a_mm_higher_is_the_same_top():
     def face(h, r):
         return Face(h, r, np.zeros((40, 40, 3), np.float32), (0.0, 0.0), 3.0)
 
-    found = [face(51.0, region)]
-    assert _found_already(face(51.5, region), found)
-    assert not _found_already(face(54.0, region), found)
-    assert not _found_already(face(51.5, beside), found)
+    first = face(51.0, region)
+    assert same_top(face(51.5, region), first)
+    assert not same_top(face(54.0, region), first)
+    assert not same_top(face(51.5, beside), first)
+    assert not same_top(face(50.5, region), first)
 
 
 def test_a_volume_in_a_note_is_never_zero_cm3():

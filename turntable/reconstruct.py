@@ -175,11 +175,18 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
                     f"({hull_stage.volume_text(skirt.volume_mm3)})")
             progress.note(f"hull: {note}")
             carved.report.setdefault("notes", []).append(note)
-    from recon.faces import carve_above_faces
+    from recon.faces import carve_above_faces, same_top
 
     with progress.stage("flat tops"):  # the roof no silhouette carves over a plinth's or a box's top
         hull, roofs = carve_above_faces(hull, images_rgb, masks, K, Ts)
+    tops: list[list] = []  # [face, mm3]: a top found again half a mm higher is noted once, with both volumes
     for face, mm3 in roofs:
+        same = next((t for t in tops if same_top(face, t[0])), None)
+        if same is None:
+            tops.append([face, mm3])
+        else:
+            same[1] += mm3
+    for face, mm3 in tops:
         note = (f"a flat top {face.height_mm:.1f} mm above the table ({face.area_mm2:.0f} mm²): the roof the "
                 f"silhouettes leave over it carved ({hull_stage.volume_text(mm3)})")
         progress.note(f"hull: {note}")
