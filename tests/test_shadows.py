@@ -271,3 +271,32 @@ def test_the_rest_of_a_skirt_under_the_seat_is_dropped_a_block_in_the_open_or_a_
     bar[11:19, 1:14, 11:19] = -0.5
     bar[5:25, 8:10, 13:15] = 1.0  # a bar joined to nothing after the carving (its ends carved)
     assert drop_cut_pieces(bar, inside, none, 1.0) is None
+
+
+def test_a_soft_shadow_held_by_every_view_still_gives_its_ratio():
+    """A soft image's shadow under a belly is held by every view alike, so the hull covers it: the held pixels
+    it leaves uncovered are the penumbra, spread from the shadow's ratio to the lit paper's, with no peak. The
+    held pixels low down, the shadow's among them, still peak at its ratio; where they do not either (a shaded
+    body's own greys), there is no shadow."""
+    from recon.shadows import _shadow_ratio, _View
+
+    rng = np.random.default_rng(7)
+    shape = (60, 80)
+
+    def view(low_ratios):
+        ratio = np.ones(shape, np.float32)
+        held = np.zeros(shape, bool)
+        cover = np.zeros(shape, bool)
+        held[:40] = True
+        cover[:30] = True  # the hull covers the shadow and the body ...
+        ratio[30:40] = rng.uniform(0.5, 1.0, (10, 80))  # ... and leaves the penumbra: no peak
+        ratio[:30] = low_ratios((30, 80))
+        ones = np.ones(shape, bool)
+        return _View(held=held, high=np.zeros(shape, bool), paperlike=ones, ratio=ratio, near=ones, cover=cover)
+
+    def shadow(s):
+        return np.where(rng.random(s) < 0.5, rng.normal(0.58, 0.005, s), rng.uniform(0.3, 0.85, s))
+
+    k = _shadow_ratio([view(shadow) for _ in range(6)])
+    assert k is not None and abs(k - 0.58) < 0.01
+    assert _shadow_ratio([view(lambda s: rng.uniform(0.3, 0.85, s)) for _ in range(6)]) is None
