@@ -353,4 +353,5 @@ def test_a_top_found_again_half_a_mm_higher_is_the_same_top():
 def test_a_volume_in_a_note_is_never_zero_cm3():
     from turntable.stages.hull import volume_text
 
-    assert volume_text(24_400.0) == "24.4 cm³" and volume_text(40.0) == "40 mm³"
+    assert volume_text(24_400.0) == "24.4 cm³" and volume_text(40.0) == "40.0 mm³"
+    assert volume_text(0.3) == "0.3 mm³"  # a speck of the hull dropped (the sample's)

@@ -28,8 +28,8 @@ class GridTooLarge(UserError):
 
 
 def volume_text(mm3: float) -> str:
-    """A carved or dropped volume for a note: cm³ from 0.1 cm³, mm³ below (never "0.0 cm³")."""
-    return f"{mm3 / 1000.0:.1f} cm³" if mm3 >= 100.0 else f"{mm3:.0f} mm³"
+    """A carved or dropped volume for a note: cm³ from 0.1 cm³, mm³ to a tenth below (never "0.0 cm³")."""
+    return f"{mm3 / 1000.0:.1f} cm³" if mm3 >= 100.0 else f"{mm3:.1f} mm³"
 
 
 def carve_hull(masks, K, Ts, opts, cache, key, progress, vol, rejections: int | None = None, images=None,
