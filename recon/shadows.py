@@ -151,7 +151,7 @@ def _shadow_ratio(views: list[_View]) -> float | None:
     (the ambient light's alone), as common there as a shadow's (the tests that follow keep such a side: it
     rises, and the plane behind it is the box's own). But a soft image's shadow is held by every view alike
     and the hull covers it all: the pixels left uncovered are its penumbra, every ratio from the shadow's to
-    the lit paper's (a teapot rendered 1 px out of focus: no bin of them held 4 % where 8 % are asked, while
+    the lit paper's (a teapot rendered 1 px out of focus: their best window 0.03 wide held 5.7 %, 8 % asked, while
     the shadow's own held pixels peaked at 0.58 with a third of the low ones)."""
     for held in ((w.held & ~w.cover & w.near & w.paperlike for w in views),
                  (w.held & ~w.high & w.near & w.paperlike for w in views)):
