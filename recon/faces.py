@@ -190,8 +190,12 @@ def same_top(face: Face, lower: Face) -> bool:
     """Whether ``lower``, found less than ``PEAK_OFFSET_MM`` under ``face``, holds most of it: one top whose
     peak was found again at the next height with the looser edge share (a chair's seat at 51.0 and 51.5 mm).
     Both carve (the second where the first's region ends); the run notes them as one top."""
-    return (0.0 <= face.height_mm - lower.height_mm < PEAK_OFFSET_MM
-            and (face.region & lower.region).sum() >= UNDER_SHARE * face.region.sum())
+    return 0.0 <= face.height_mm - lower.height_mm < PEAK_OFFSET_MM and _holds_most(lower, face)
+
+
+def _holds_most(other: Face, face: Face) -> bool:
+    """Whether ``other``'s region holds ``UNDER_SHARE`` of ``face``'s or more."""
+    return bool((face.region & other.region).sum() >= UNDER_SHARE * face.region.sum())
 
 
 def _under_a_top(face: Face, faces: list[Face]) -> bool:
@@ -204,12 +208,8 @@ def _under_a_top(face: Face, faces: list[Face]) -> bool:
     to the lower face, a white chair's seat was dug out 6 mm deep over 1700 mm2 (its true masks given, and
     the automatic ones in a dark room).
     """
-    area = face.region.sum()
-    for other in faces:
-        if PEAK_OFFSET_MM <= other.height_mm - face.height_mm <= RISE_MM \
-                and (face.region & other.region).sum() >= UNDER_SHARE * area:
-            return True
-    return False
+    return any(PEAK_OFFSET_MM <= other.height_mm - face.height_mm <= RISE_MM and _holds_most(other, face)
+               for other in faces)
 
 
 def _stands_high(face: Face, hull: VoxelHull, Ts) -> bool:
@@ -507,8 +507,9 @@ def carve_under_slabs(hull: VoxelHull, faces: list[Face], masks, K, Ts) -> tuple
         carve_cols |= ends & kept[cx, cz]
         if not carve_cols.any():
             continue
-        cols = [(x, z, n) for x, z, n in zip(cx[carve_cols], cz[carve_cols], reach[carve_cols], strict=True)]
-        carve = np.array([(x, iy_top - k, z) for x, z, n in cols for k in range(n)])
+        ux, uz, n = cx[carve_cols], cz[carve_cols], reach[carve_cols]
+        k = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)  # 0 .. n - 1 down each column
+        carve = np.column_stack([np.repeat(ux, n), iy_top - k, np.repeat(uz, n)])
         trial = inside.copy()
         trial[tuple(carve.T)] = False
         if _uncovered_share(inside, trial, hull, masks, K, Ts) > GUARD_PX:
@@ -516,7 +517,6 @@ def carve_under_slabs(hull: VoxelHull, faces: list[Face], masks, K, Ts) -> tuple
         # the underside's plane is the surface: signed distance to it under the slab, and in the layer over it
         ci = tuple(carve.T)
         vals[ci] = np.minimum(np.minimum(vals[ci], (o[1] + carve[:, 1] * v) - np.float32(h)), -0.5 * v)
-        ux, uz = np.array([c[0] for c in cols]), np.array([c[1] for c in cols])
         iy = iy_top + 1
         if iy < vals.shape[1]:
             vals[ux, iy, uz] = np.minimum(vals[ux, iy, uz], np.float32((o[1] + iy * v) - h))

@@ -60,12 +60,14 @@ def frame_status(area_px: np.ndarray, support: np.ndarray, border_px: np.ndarray
         small = area[i] < _MIN_AREA * region_px[i] and area[i] < _TYPICAL_SHARE * typical
         if region_px[i] == 0 or small or area[i] < _FLOOR_AREA * region_px[i]:
             quality[i] = 0.0
-            status.append("rejected: the working volume is not in view" if region_px[i] == 0 else
-                          f"rejected: {EMPTY} (0 px)" if area[i] == 0 else
-                          # a mask of some thousand pixels is "empty" only against what it should cover: say so
-                          f"rejected: nearly {EMPTY} ({int(area[i])} px: {100 * area[i] / region_px[i]:.1f} % of "
-                          f"the working volume's image, {100 * area[i] / max(typical, 1.0):.0f} % of the median "
-                          "frame's)")
+            if region_px[i] == 0:
+                status.append("rejected: the working volume is not in view")
+            elif area[i] == 0:
+                status.append(f"rejected: {EMPTY} (0 px)")
+            else:  # a mask of some thousand pixels is "empty" only against what it should cover: say so
+                status.append(f"rejected: nearly {EMPTY} ({int(area[i])} px: {100 * area[i] / region_px[i]:.1f} % "
+                              f"of the working volume's image, {100 * area[i] / max(typical, 1.0):.0f} % of the "
+                              "median frame's)")
         elif border_px[i] > 0.25 * (W + H):
             status.append(f"conservative: silhouette touches the image border along {int(border_px[i])} px")
         elif not 0.67 <= ratio <= 1.5:

@@ -24,6 +24,8 @@ import numpy as np
 
 from recon.types import FusedPoints, TableMesh, VoxelHull
 
+from .hull import volume_text
+
 log = logging.getLogger(__name__)
 
 __all__ = ["FusionResult", "run_fusion"]
@@ -77,7 +79,7 @@ def run_fusion(images_rgb, masks, K: np.ndarray, T_cam_table: np.ndarray, hull: 
     n_pts = len(fused.pts_table)
     if choice.n_kept == 0:
         why = ("stereo carved nothing" if choice.n_regions == 0 else
-               f"none of {choice.n_regions} carved regions ({choice.rejected_mm3 / 1000:.1f} cm³) was confirmed "
+               f"none of {choice.n_regions} carved regions ({volume_text(choice.rejected_mm3)}) was confirmed "
                f"by held-out views ({choice.n_unjudged} too little seen to judge)")
         return FusionResult(hull_mesh, fused, f"hull kept: {n_pts} fused points; {why}")
     with progress.stage("fused mesh"):
@@ -92,7 +94,7 @@ def run_fusion(images_rgb, masks, K: np.ndarray, T_cam_table: np.ndarray, hull: 
                             f"hull kept: the fused mesh could not be made watertight ({n_pts} fused points)")
     share = 100.0 * choice.kept_mm3 / max(choice.kept_mm3 + choice.rejected_mm3, 1e-9)
     note = (f"fused surface kept in {choice.n_kept} of {choice.n_regions} carved regions "
-            f"({choice.kept_mm3 / 1000:.1f} cm³ carved, {share:.0f} % of what stereo carved), hull elsewhere "
+            f"({volume_text(choice.kept_mm3)} carved, {share:.0f} % of what stereo carved), hull elsewhere "
             f"({choice.n_unjudged} regions too little seen to judge); on {choice.n_pixels} held-out stereo pixels "
             f"there, error {choice.fused_err_mm:.2f} mm fused vs {choice.hull_err_mm:.2f} mm hull; "
             f"volume {st.volume_mm3 / max(sh.volume_mm3, 1e-9):.2f} x the hull's; {n_pts} fused points")
