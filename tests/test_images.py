@@ -396,3 +396,36 @@ def test_a_huge_image_is_refused_from_its_header(tmp_path):
     tracemalloc.stop()
     assert peak < 100e6, peak  # the header only
     assert MAX_PIXELS > 8064 * 6048  # 48 MP phone photos still pass
+
+
+@pytest.mark.parametrize("orientation", [1, 6, 3])
+def test_read_alpha_gives_a_cutouts_transparency_upright(tmp_path, orientation):
+    from turntable.images import read_alpha
+
+    rng = np.random.default_rng(20 + orientation)
+    up = _upright(rng)
+    alpha = np.zeros(up.shape[:2], np.uint8)
+    alpha[10:40, 5:30] = 255  # no symmetry: a wrong rotation cannot match
+    rgba = np.dstack([up[..., ::-1], alpha])
+    path = tmp_path / "cut.png"
+    Image.fromarray(np.ascontiguousarray(_STORED[orientation](rgba))).save(path, "PNG", exif=_exif(orientation))
+    got = read_alpha(path)
+    assert got is not None and got.shape == alpha.shape
+    np.testing.assert_array_equal(got, alpha)
+    assert read_image(path).shape == up.shape  # the colours upright the same way
+
+
+def test_read_alpha_is_none_without_transparency(tmp_path):
+    from turntable.images import read_alpha
+
+    m = np.zeros((32, 48), np.uint8)
+    m[8:20, 10:30] = 255
+    Image.fromarray(m).save(tmp_path / "grey.png")
+    Image.fromarray(np.dstack([m, m, m, np.full_like(m, 255)])).save(tmp_path / "opaque.png")  # alpha, all opaque
+    cv2.imwrite(str(tmp_path / "mask.jpg"), m)
+    for name in ("grey.png", "opaque.png", "mask.jpg"):
+        assert read_alpha(tmp_path / name) is None, name
+    p = Image.fromarray(m).convert("P")  # a palette image whose black is transparent: a cut-out too
+    p.save(tmp_path / "pal.png", transparency=0)
+    got = read_alpha(tmp_path / "pal.png")
+    assert got is not None and np.array_equal(got > 127, m > 127)

@@ -316,6 +316,27 @@ def test_label_image_masks_of_0_and_1_are_read_as_object_and_background(scene, t
     assert (tmp_path / "scan" / "model.ply").read_bytes() == (tmp_path / "ref" / "model.ply").read_bytes()
 
 
+def test_cutout_masks_are_read_by_their_alpha_not_their_colours(scene, tmp_path, capsys):
+    """A background remover's PNG (the photo's colours, the background transparent) is the mask its alpha
+    draws: read by colour, the object's dark pixels (the vase's shaded side) were background and carved."""
+    import cv2
+
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    images = sorted((scene / "images").iterdir())
+    for f, img in zip(sorted((scene / "masks").glob("*.png")), images, strict=True):
+        a = np.where(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) > 127, np.uint8(255), np.uint8(0))
+        bgr = cv2.imread(str(img))
+        cv2.imwrite(str(masks / f.name), np.dstack([bgr // 2, a]))  # colours mostly under 128: wrong by colour
+    args = _known_cameras_args(scene, tmp_path / "scan")
+    args[args.index("--masks") + 1] = str(masks)
+    args.remove("--quiet")
+    assert main(args) == 0
+    assert "have transparency (cut-outs" in capsys.readouterr().err
+    assert main(_known_cameras_args(scene, tmp_path / "ref")) == 0
+    assert (tmp_path / "scan" / "model.ply").read_bytes() == (tmp_path / "ref" / "model.ply").read_bytes()
+
+
 def test_silhouettes_confined_to_a_small_volume_touch_its_side_and_top(scene):
     """Automatic silhouettes never leave the cylinder's image: an object larger than it shows along that outline."""
     import cv2

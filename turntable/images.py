@@ -31,7 +31,7 @@ import numpy as np
 
 from .errors import UserError
 
-__all__ = ["IMAGE_SUFFIXES", "HEIF_SUFFIXES", "read_image", "list_images", "natural_key",
+__all__ = ["IMAGE_SUFFIXES", "HEIF_SUFFIXES", "read_image", "read_alpha", "list_images", "natural_key",
            "exif_focal_35mm", "exif_focal_px", "focal_px_from_35mm", "FULL_FRAME_DIAGONAL_MM",
            "FOCAL_DISAGREE_REL", "exif_focal_report", "focal_warning"]
 
@@ -167,6 +167,33 @@ def read_image(path: str | Path) -> np.ndarray:
                                 f"HEIC/HEIF nor another image format)")
             raise UserError(f"{path}: cannot decode image (not an image file, or corrupt)")
     return _to_bgr8(img, path)
+
+
+def read_alpha(path: str | Path) -> np.ndarray | None:
+    """The transparency of an image file as uint8 (H, W), upright, or None where it has none.
+
+    None unless the file carries an alpha channel (or a palette/colour key
+    transparency) that makes some pixel less than opaque: a cut-out (a
+    background remover's PNG, the object on transparent pixels) has one, a
+    plain black-and-white mask has not. The header is read first (Pillow opens
+    lazily), so a file without transparency is not decoded here. Upright as
+    :func:`read_image` gives the colours: the EXIF orientation is applied.
+    """
+    import warnings
+
+    from PIL import Image, ImageOps
+
+    path = Path(path)
+    try:
+        with warnings.catch_warnings(), Image.open(path) as im:
+            warnings.simplefilter("ignore")
+            if not (im.mode in ("RGBA", "LA", "PA", "RGBa", "La") or "transparency" in im.info):
+                return None
+            rgba = ImageOps.exif_transpose(im).convert("RGBA")
+    except (OSError, ValueError, Image.DecompressionBombError):
+        return None  # not an image Pillow reads (read_image says why, if it cannot either)
+    a = np.asarray(rgba)[..., 3]
+    return None if a.min() == 255 else np.ascontiguousarray(a)
 
 
 def list_images(folder: str | Path) -> list[Path]:

@@ -62,12 +62,14 @@ def read_masks(masks_dir: Path, names: list[str], ws: WorkSize,
                 progress: Progress | None = None) -> tuple[np.ndarray, dict[str, str]]:
     """Masks matched to frames by file stem, as large as the photos; any image format; > 127 = object.
 
-    A mask holding only 0 and one value up to 127 (a label image: 0/1, 0/100)
-    takes that value as the object, with a note. Returned at the work size
+    A mask with transparency (a cut-out: the object on transparent pixels, as
+    background removers write it) is its alpha channel, whatever its colours,
+    with a note. A mask holding only 0 and one value up to 127 (a label image:
+    0/1, 0/100) takes that value as the object, with a note. Returned at the work size
     (V, h, w) bool: each mask is reduced (area average, then > 0.5) as it is
     read; and for each mask with no object pixel, why (its brightest value).
     """
-    from ..images import read_image
+    from ..images import read_alpha, read_image
     from ..mask_checks import check_masks
 
     if not masks_dir.is_dir():
@@ -76,13 +78,20 @@ def read_masks(masks_dir: Path, names: list[str], ws: WorkSize,
     out = np.zeros((len(names), h, w), bool)
     empty: dict[str, str] = {}
     labels: list[str] = []
+    cutouts: list[str] = []
     for i, (n, p) in enumerate(zip(names, mask_files(masks_dir, names), strict=True)):
         if p is None:
             raise UserError(f"--masks {masks_dir}: no mask for frame {n} (expected {Path(n).stem}.png)")
         m = read_image(p)
         if m.shape[:2] != (H, W):
             raise UserError(f"{p}: mask is {m.shape[1]}x{m.shape[0]}, frame {n} is {W}x{H}")
-        g = m.max(axis=2)
+        alpha = read_alpha(p)
+        if alpha is not None and alpha.shape == m.shape[:2]:
+            # the colours of a cut-out are the photo's: a dark part of the object is not background
+            cutouts.append(n)
+            g = alpha
+        else:
+            g = m.max(axis=2)
         top = int(g.max())
         if 0 < top <= 127 and not np.any((g != 0) & (g != top)):  # two values, 0 and a low one: a label image
             labels.append(n)
@@ -91,8 +100,13 @@ def read_masks(masks_dir: Path, names: list[str], ws: WorkSize,
             threshold = 127
         out[i] = ws.reduce(np.where(g > threshold, np.uint8(255), np.uint8(0))) > 127
         if not out[i].any():
-            empty[n] = (f"{p.name} has no pixel above 127, the brightest is {top}" if top <= threshold else
+            empty[n] = (f"{p.name} has no pixel with alpha above 127 (no opaque pixel)" if top <= threshold and
+                        cutouts[-1:] == [n] else
+                        f"{p.name} has no pixel above 127, the brightest is {top}" if top <= threshold else
                         f"{p.name}: the object pixels vanish at the work size")
+    if cutouts and progress is not None:
+        progress.note(f"masks: {len(cutouts)} mask(s) have transparency (cut-outs, e.g. {cutouts[0]}): "
+                      f"their opaque pixels (alpha > 127) are taken as the object, not their colours")
     if labels and progress is not None:
         progress.note(f"masks: {len(labels)} mask(s) hold only 0 and one value up to 127 (label images, "
                       f"e.g. {labels[0]}): that value is taken as the object")
