@@ -316,6 +316,27 @@ def test_label_image_masks_of_0_and_1_are_read_as_object_and_background(scene, t
     assert (tmp_path / "scan" / "model.ply").read_bytes() == (tmp_path / "ref" / "model.ply").read_bytes()
 
 
+def test_masks_named_with_a_mask_suffix_are_matched_and_a_missing_one_is_named(scene, tmp_path, capsys):
+    import shutil
+
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    files = sorted((scene / "masks").glob("*.png"))
+    for k, f in enumerate(files):  # IMG_mask.png, mask_IMG.png, any case: what segmentation tools write
+        shutil.copy(f, masks / (f"{f.stem}_MASK.png" if k % 2 else f"mask_{f.stem}.png"))
+    args = _known_cameras_args(scene, tmp_path / "scan")
+    args[args.index("--masks") + 1] = str(masks)
+    assert main(args) == 0
+    assert main(_known_cameras_args(scene, tmp_path / "ref")) == 0
+    assert (tmp_path / "scan" / "model.ply").read_bytes() == (tmp_path / "ref" / "model.ply").read_bytes()
+    (masks / f"mask_{files[2].stem}.png").unlink()
+    capsys.readouterr()
+    assert main(args + ["--out", str(tmp_path / "scan2")]) == 2
+    err = capsys.readouterr().err
+    assert f"no mask for frame {files[2].stem}" in err and str(masks) in err and "Traceback" not in err
+    assert not (tmp_path / "scan2" / "model.ply").exists()
+
+
 def test_cutout_masks_are_read_by_their_alpha_not_their_colours(scene, tmp_path, capsys):
     """A background remover's PNG (the photo's colours, the background transparent) is the mask its alpha
     draws: read by colour, the object's dark pixels (the vase's shaded side) were background and carved."""

@@ -81,7 +81,8 @@ def read_masks(masks_dir: Path, names: list[str], ws: WorkSize,
     cutouts: list[str] = []
     for i, (n, p) in enumerate(zip(names, mask_files(masks_dir, names), strict=True)):
         if p is None:
-            raise UserError(f"--masks {masks_dir}: no mask for frame {n} (expected {Path(n).stem}.png)")
+            raise UserError(f"--masks {masks_dir}: no mask for frame {n} (expected {Path(n).stem}.png, or "
+                            f"{Path(n).stem}_mask.png)")
         m = read_image(p)
         if m.shape[:2] != (H, W):
             raise UserError(f"{p}: mask is {m.shape[1]}x{m.shape[0]}, frame {n} is {W}x{H}")
@@ -114,8 +115,17 @@ def read_masks(masks_dir: Path, names: list[str], ws: WorkSize,
     return out, empty
 
 
+#: A mask named after its frame with one of these around the stem is the frame's too (``IMG_0001_mask.png``,
+#: ``mask_IMG_0001.png``), where no file has the frame's stem exactly.
+MASK_SUFFIXES = ("_mask", "-mask", ".mask", "_alpha", "_matte")
+MASK_PREFIXES = ("mask_", "mask-")
+
+
 def mask_files(masks_dir: Path, names: list[str]) -> list[Path | None]:
-    """The mask file of each frame, matched by file stem (None: no mask; no folder: all None)."""
+    """The mask file of each frame, matched by file stem (None: no mask; no folder: all None).
+
+    The stem itself first; then the stem with a common mask suffix or prefix
+    (:data:`MASK_SUFFIXES`, :data:`MASK_PREFIXES`, any case)."""
     from ..frames import frame_name
     from ..images import IMAGE_SUFFIXES
 
@@ -123,7 +133,19 @@ def mask_files(masks_dir: Path, names: list[str]) -> list[Path | None]:
         by_stem = {frame_name(p.stem): p for p in sorted(masks_dir.iterdir()) if p.suffix.lower() in IMAGE_SUFFIXES}
     except OSError:
         by_stem = {}
-    return [by_stem.get(Path(n).stem) for n in names]
+    lower: dict[str, Path] = {}
+    for stem, p in by_stem.items():
+        lower.setdefault(stem.lower(), p)
+
+    def find(stem: str) -> Path | None:
+        if stem in by_stem:
+            return by_stem[stem]
+        for cand in [stem + s for s in MASK_SUFFIXES] + [pre + stem for pre in MASK_PREFIXES]:
+            if cand.lower() in lower:
+                return lower[cand.lower()]
+        return None
+
+    return [find(Path(n).stem) for n in names]
 
 
 def undistort_masks(masks: np.ndarray, intr, ws: WorkSize) -> np.ndarray:
