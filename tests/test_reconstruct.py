@@ -337,6 +337,32 @@ def test_masks_named_with_a_mask_suffix_are_matched_and_a_missing_one_is_named(s
     assert not (tmp_path / "scan2" / "model.ply").exists()
 
 
+def test_masks_at_half_the_photos_size_are_scaled_and_a_turned_one_is_refused(scene, tmp_path, capsys):
+    """A segmentation model's masks often come smaller than the photos: the same shape scaled is used (the
+    model within 3 % of the full-size masks' volume, with a note); another shape is refused, named."""
+    import json
+
+    import cv2
+
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    files = sorted((scene / "masks").glob("*.png"))
+    for f in files:
+        cv2.imwrite(str(masks / f.name), cv2.resize(cv2.imread(str(f), 0), (320, 240), interpolation=cv2.INTER_AREA))
+    args = _known_cameras_args(scene, tmp_path / "scan")
+    args[args.index("--masks") + 1] = str(masks)
+    args.remove("--quiet")
+    assert main(args) == 0
+    assert "not the photos' size but their shape scaled" in capsys.readouterr().err
+    assert main(_known_cameras_args(scene, tmp_path / "ref")) == 0
+    vol = [json.loads((tmp_path / d / "summary.json").read_text())["mesh"]["volume_cm3"] for d in ("scan", "ref")]
+    assert abs(vol[0] / vol[1] - 1.0) < 0.03, vol
+    cv2.imwrite(str(masks / files[3].name), np.zeros((640, 480), np.uint8))  # portrait: not this photo's shape
+    assert main(args + ["--out", str(tmp_path / "scan2")]) == 2
+    err = capsys.readouterr().err
+    assert f"{files[3].name}: mask is 480x640, frame" in err and "Traceback" not in err
+
+
 def test_cutout_masks_are_read_by_their_alpha_not_their_colours(scene, tmp_path, capsys):
     """A background remover's PNG (the photo's colours, the background transparent) is the mask its alpha
     draws: read by colour, the object's dark pixels (the vase's shaded side) were background and carved."""

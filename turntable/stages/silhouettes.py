@@ -60,7 +60,8 @@ def silhouette_advice(rejected: dict[str, str], conservative: dict[str, str], n_
 
 def read_masks(masks_dir: Path, names: list[str], ws: WorkSize,
                 progress: Progress | None = None) -> tuple[np.ndarray, dict[str, str]]:
-    """Masks matched to frames by file stem, as large as the photos; any image format; > 127 = object.
+    """Masks matched to frames by file stem, as large as the photos (or their shape scaled, with a note); any
+    image format; > 127 = object.
 
     A mask with transparency (a cut-out: the object on transparent pixels, as
     background removers write it) is its alpha channel, whatever its colours,
@@ -69,6 +70,8 @@ def read_masks(masks_dir: Path, names: list[str], ws: WorkSize,
     (V, h, w) bool: each mask is reduced (area average, then > 0.5) as it is
     read; and for each mask with no object pixel, why (its brightest value).
     """
+    import cv2
+
     from ..images import read_alpha, read_image
     from ..mask_checks import check_masks
 
@@ -79,13 +82,17 @@ def read_masks(masks_dir: Path, names: list[str], ws: WorkSize,
     empty: dict[str, str] = {}
     labels: list[str] = []
     cutouts: list[str] = []
+    scaled: list[str] = []
     for i, (n, p) in enumerate(zip(names, mask_files(masks_dir, names), strict=True)):
         if p is None:
             raise UserError(f"--masks {masks_dir}: no mask for frame {n} (expected {Path(n).stem}.png, or "
                             f"{Path(n).stem}_mask.png)")
         m = read_image(p)
-        if m.shape[:2] != (H, W):
-            raise UserError(f"{p}: mask is {m.shape[1]}x{m.shape[0]}, frame {n} is {W}x{H}")
+        mh, mw = m.shape[:2]
+        if (mh, mw) != (H, W):
+            if abs(mw * H - W * mh) > 0.005 * W * mh:  # another shape, not the photo's scaled (a crop, turned)
+                raise UserError(f"{p}: mask is {mw}x{mh}, frame {n} is {W}x{H} (not the same shape scaled either)")
+            scaled.append(n)
         alpha = read_alpha(p)
         if alpha is not None and alpha.shape == m.shape[:2]:
             # the colours of a cut-out are the photo's: a dark part of the object is not background
@@ -99,12 +106,19 @@ def read_masks(masks_dir: Path, names: list[str], ws: WorkSize,
             threshold = 0
         else:
             threshold = 127
-        out[i] = ws.reduce(np.where(g > threshold, np.uint8(255), np.uint8(0))) > 127
+        binary = np.where(g > threshold, np.uint8(255), np.uint8(0))
+        if (mh, mw) == (H, W):
+            out[i] = ws.reduce(binary) > 127
+        else:  # the photo's shape at another size: scaled to the work size (pixel centres kept, as ws.reduce)
+            out[i] = cv2.resize(binary, (w, h), interpolation=cv2.INTER_AREA if mw >= w else cv2.INTER_LINEAR) > 127
         if not out[i].any():
             empty[n] = (f"{p.name} has no pixel with alpha above 127 (no opaque pixel)" if top <= threshold and
                         cutouts[-1:] == [n] else
                         f"{p.name} has no pixel above 127, the brightest is {top}" if top <= threshold else
                         f"{p.name}: the object pixels vanish at the work size")
+    if scaled and progress is not None:
+        progress.note(f"masks: {len(scaled)} mask(s) are not the photos' size but their shape scaled (e.g. "
+                      f"{scaled[0]}): scaled to the photos")
     if cutouts and progress is not None:
         progress.note(f"masks: {len(cutouts)} mask(s) have transparency (cut-outs, e.g. {cutouts[0]}): "
                       f"their opaque pixels (alpha > 127) are taken as the object, not their colours")
