@@ -60,7 +60,9 @@ from resolution import chamfer_pct  # noqa: E402
 
 BUILT_IN = ("vase", "figure", "cup", "chair")
 SHAPES = ("teapot", "bunny", "snowman", "box")
-EXTRA_SHAPES = ("offbox",)  # on request (--objects offbox): a box off the axis
+# on request (--objects ...): a box off the axis; a bottle (tall, a narrow neck); a ring lying flat (a hole the
+# views see through); a lamp (a disc, a thin stem, a ball: thin parts)
+EXTRA_SHAPES = ("offbox", "bottle", "ring", "lamp")
 
 
 def _sdf_mesh(name: str, path: Path) -> None:
@@ -102,6 +104,16 @@ def _sdf_mesh(name: str, path: Path) -> None:
         # lying on the table balances it, one piece
         d = np.minimum.reduce([np.maximum.reduce([np.abs(X - 40) - 30, np.abs(Y - 25) - 25, np.abs(Z) - 20]),
                                ball((-60, 8, 0), 8), rod((-60, 8, 0), (20, 8, 0), 4)])
+    elif name == "bottle":
+        body = np.maximum(np.sqrt(X ** 2 + Z ** 2) - 24, np.abs(Y - 40) - 40)
+        neck = np.maximum(np.sqrt(X ** 2 + Z ** 2) - 9, np.abs(Y - 88) - 18)
+        d = np.minimum.reduce([body, neck, ell((0, 78, 0), (24, 12, 24))])
+    elif name == "ring":
+        q = np.sqrt(X ** 2 + Z ** 2) - 36
+        d = np.sqrt(q ** 2 + (Y - 14) ** 2) - 14
+    elif name == "lamp":
+        base = np.maximum(np.sqrt(X ** 2 + Z ** 2) - 40, np.abs(Y - 5) - 5)
+        d = np.minimum.reduce([base, rod((0, 0, 0), (0, 80, 0), 4), ball((0, 92, 0), 16)])
     else:
         raise ValueError(name)
     d = np.maximum(d, -Y)  # cut flat at the table
