@@ -423,7 +423,8 @@ def test_read_alpha_is_none_without_transparency(tmp_path):
     Image.fromarray(m).save(tmp_path / "grey.png")
     Image.fromarray(np.dstack([m, m, m, np.full_like(m, 255)])).save(tmp_path / "opaque.png")  # alpha, all opaque
     cv2.imwrite(str(tmp_path / "mask.jpg"), m)
-    for name in ("grey.png", "opaque.png", "mask.jpg"):
+    Image.fromarray(np.dstack([m, m, m, np.zeros_like(m)])).save(tmp_path / "clear.png")  # all transparent
+    for name in ("grey.png", "opaque.png", "mask.jpg", "clear.png"):
         assert read_alpha(tmp_path / name) is None, name
     p = Image.fromarray(m).convert("P")  # a palette image whose black is transparent: a cut-out too
     p.save(tmp_path / "pal.png", transparency=0)

@@ -173,9 +173,9 @@ def read_alpha(path: str | Path) -> np.ndarray | None:
     """The transparency of an image file as uint8 (H, W), upright, or None where it has none.
 
     None unless the file carries an alpha channel (or a palette/colour key
-    transparency) that makes some pixel less than opaque: a cut-out (a
-    background remover's PNG, the object on transparent pixels) has one, a
-    plain black-and-white mask has not. The header is read first (Pillow opens
+    transparency) with some pixel less than opaque and some more than
+    transparent: a cut-out (a background remover's PNG, the object on
+    transparent pixels) has one, a plain black-and-white mask has not. The header is read first (Pillow opens
     lazily), so a file without transparency is not decoded here. Upright as
     :func:`read_image` gives the colours: the EXIF orientation is applied.
     """
@@ -193,7 +193,8 @@ def read_alpha(path: str | Path) -> np.ndarray | None:
     except (OSError, ValueError, Image.DecompressionBombError):
         return None  # not an image Pillow reads (read_image says why, if it cannot either)
     a = np.asarray(rgba)[..., 3]
-    return None if a.min() == 255 else np.ascontiguousarray(a)
+    # all opaque: a plain image; all transparent: no picture at all, the colours are what was meant
+    return None if a.min() == 255 or a.max() == 0 else np.ascontiguousarray(a)
 
 
 def list_images(folder: str | Path) -> list[Path]:
