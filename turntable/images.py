@@ -175,9 +175,10 @@ def read_alpha(path: str | Path) -> np.ndarray | None:
     None unless the file carries an alpha channel (or a palette/colour key
     transparency) with some pixel less than opaque and some more than
     transparent: a cut-out (a background remover's PNG, the object on
-    transparent pixels) has one, a plain black-and-white mask has not. The header is read first (Pillow opens
-    lazily), so a file without transparency is not decoded here. Upright as
-    :func:`read_image` gives the colours: the EXIF orientation is applied.
+    transparent pixels) has one, a plain black-and-white mask has not. The
+    header is read first (Pillow opens lazily), so a file without transparency
+    is not decoded here. Upright as :func:`read_image` gives the colours: the
+    EXIF orientation is applied.
     """
     import warnings
 

@@ -94,12 +94,11 @@ def read_masks(masks_dir: Path, names: list[str], ws: WorkSize,
                 raise UserError(f"{p}: mask is {mw}x{mh}, frame {n} is {W}x{H} (not the same shape scaled either)")
             scaled.append(n)
         alpha = read_alpha(p)
-        if alpha is not None and alpha.shape == m.shape[:2]:
-            # the colours of a cut-out are the photo's: a dark part of the object is not background
+        cutout = alpha is not None and alpha.shape == m.shape[:2]
+        g = m.max(axis=2)
+        if alpha is not None and cutout:  # a cut-out's colours are the photo's: a dark part is no background
             cutouts.append(n)
             g = alpha
-        else:
-            g = m.max(axis=2)
         top = int(g.max())
         if 0 < top <= 127 and not np.any((g != 0) & (g != top)):  # two values, 0 and a low one: a label image
             labels.append(n)
@@ -112,10 +111,12 @@ def read_masks(masks_dir: Path, names: list[str], ws: WorkSize,
         else:  # the photo's shape at another size: scaled to the work size (pixel centres kept, as ws.reduce)
             out[i] = cv2.resize(binary, (w, h), interpolation=cv2.INTER_AREA if mw >= w else cv2.INTER_LINEAR) > 127
         if not out[i].any():
-            empty[n] = (f"{p.name} has no pixel with alpha above 127 (no opaque pixel)" if top <= threshold and
-                        cutouts[-1:] == [n] else
-                        f"{p.name} has no pixel above 127, the brightest is {top}" if top <= threshold else
-                        f"{p.name}: the object pixels vanish at the work size")
+            if top > threshold:
+                empty[n] = f"{p.name}: the object pixels vanish at the work size"
+            elif cutout:
+                empty[n] = f"{p.name} has no pixel with alpha above 127 (no opaque pixel)"
+            else:
+                empty[n] = f"{p.name} has no pixel above 127, the brightest is {top}"
     if scaled and progress is not None:
         progress.note(f"masks: {len(scaled)} mask(s) are not the photos' size but their shape scaled (e.g. "
                       f"{scaled[0]}): scaled to the photos")
