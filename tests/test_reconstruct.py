@@ -184,6 +184,24 @@ def _automatic_silhouettes_args(scene, out) -> list[str]:
     return args[:i] + args[i + 2:]
 
 
+def _masks_args(scene, out, masks, quiet: bool = False) -> list[str]:
+    """:func:`_known_cameras_args` with the silhouettes of folder ``masks`` (notes on screen unless ``quiet``)."""
+    args = _known_cameras_args(scene, out)
+    args[args.index("--masks") + 1] = str(masks)
+    if not quiet:
+        args.remove("--quiet")
+    return args
+
+
+@pytest.fixture(scope="module")
+def true_masks_run(scene, tmp_path_factory):
+    """The output folder of :func:`_known_cameras_args` (the scene's own 0/255 masks): what masks written
+    another way must reproduce."""
+    out = tmp_path_factory.mktemp("true_masks") / "scan"
+    assert main(_known_cameras_args(scene, out)) == 0
+    return out
+
+
 @pytest.fixture(scope="module")
 def gt_radius_mm(scene) -> float:
     v = trimesh.load(scene / "object_gt.ply").vertices
@@ -284,9 +302,7 @@ def test_rejected_silhouettes_are_named_with_their_reason(scene, tmp_path, capsy
     shutil.copytree(scene / "masks", masks)
     files = sorted(masks.glob("*.png"))
     cv2.imwrite(str(files[4]), np.zeros((480, 640), np.uint8))
-    args = _known_cameras_args(scene, tmp_path / "scan")
-    args[args.index("--masks") + 1] = str(masks)
-    args.remove("--quiet")
+    args = _masks_args(scene, tmp_path / "scan", masks)
     assert main(args) == 0
     cap = capsys.readouterr()
     assert f"frame {files[4].stem}" in cap.err and "rejected: the mask is empty" in cap.err  # on screen, as it happens
@@ -299,7 +315,7 @@ def test_rejected_silhouettes_are_named_with_their_reason(scene, tmp_path, capsy
     assert f"{files[1].name} has no pixel above 127, the brightest is 0" in err  # why it is empty
 
 
-def test_label_image_masks_of_0_and_1_are_read_as_object_and_background(scene, tmp_path, capsys):
+def test_label_image_masks_of_0_and_1_are_read_as_object_and_background(scene, true_masks_run, tmp_path, capsys):
     """Many tools write masks as 0/1 label images: the same model as 0/255 masks, with a note."""
     import cv2
 
@@ -307,16 +323,14 @@ def test_label_image_masks_of_0_and_1_are_read_as_object_and_background(scene, t
     masks.mkdir()
     for f in sorted((scene / "masks").glob("*.png")):
         cv2.imwrite(str(masks / f.name), (cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) > 127).astype(np.uint8))
-    args = _known_cameras_args(scene, tmp_path / "scan")
-    args[args.index("--masks") + 1] = str(masks)
-    args.remove("--quiet")
-    assert main(args) == 0
+    capsys.readouterr()
+    assert main(_masks_args(scene, tmp_path / "scan", masks)) == 0
     assert "label images" in capsys.readouterr().err
-    assert main(_known_cameras_args(scene, tmp_path / "ref")) == 0
-    assert (tmp_path / "scan" / "model.ply").read_bytes() == (tmp_path / "ref" / "model.ply").read_bytes()
+    assert (tmp_path / "scan" / "model.ply").read_bytes() == (true_masks_run / "model.ply").read_bytes()
 
 
-def test_masks_named_with_a_mask_suffix_are_matched_and_a_missing_one_is_named(scene, tmp_path, capsys):
+def test_masks_named_with_a_mask_suffix_are_matched_and_a_missing_one_is_named(scene, true_masks_run, tmp_path,
+                                                                              capsys):
     import shutil
 
     masks = tmp_path / "masks"
@@ -324,11 +338,9 @@ def test_masks_named_with_a_mask_suffix_are_matched_and_a_missing_one_is_named(s
     files = sorted((scene / "masks").glob("*.png"))
     for k, f in enumerate(files):  # IMG_mask.png, mask_IMG.png, any case: what segmentation tools write
         shutil.copy(f, masks / (f"{f.stem}_MASK.png" if k % 2 else f"mask_{f.stem}.png"))
-    args = _known_cameras_args(scene, tmp_path / "scan")
-    args[args.index("--masks") + 1] = str(masks)
+    args = _masks_args(scene, tmp_path / "scan", masks, quiet=True)
     assert main(args) == 0
-    assert main(_known_cameras_args(scene, tmp_path / "ref")) == 0
-    assert (tmp_path / "scan" / "model.ply").read_bytes() == (tmp_path / "ref" / "model.ply").read_bytes()
+    assert (tmp_path / "scan" / "model.ply").read_bytes() == (true_masks_run / "model.ply").read_bytes()
     (masks / f"mask_{files[2].stem}.png").unlink()
     capsys.readouterr()
     assert main(args + ["--out", str(tmp_path / "scan2")]) == 2
@@ -337,7 +349,8 @@ def test_masks_named_with_a_mask_suffix_are_matched_and_a_missing_one_is_named(s
     assert not (tmp_path / "scan2" / "model.ply").exists()
 
 
-def test_masks_at_half_the_photos_size_are_scaled_and_a_turned_one_is_refused(scene, tmp_path, capsys):
+def test_masks_at_half_the_photos_size_are_scaled_and_a_turned_one_is_refused(scene, true_masks_run, tmp_path,
+                                                                              capsys):
     """A segmentation model's masks often come smaller than the photos: the same shape scaled is used (the
     model within 3 % of the full-size masks' volume, with a note); another shape is refused, named."""
     import json
@@ -349,13 +362,12 @@ def test_masks_at_half_the_photos_size_are_scaled_and_a_turned_one_is_refused(sc
     files = sorted((scene / "masks").glob("*.png"))
     for f in files:
         cv2.imwrite(str(masks / f.name), cv2.resize(cv2.imread(str(f), 0), (320, 240), interpolation=cv2.INTER_AREA))
-    args = _known_cameras_args(scene, tmp_path / "scan")
-    args[args.index("--masks") + 1] = str(masks)
-    args.remove("--quiet")
+    args = _masks_args(scene, tmp_path / "scan", masks)
+    capsys.readouterr()
     assert main(args) == 0
     assert "not the photos' size but their shape scaled" in capsys.readouterr().err
-    assert main(_known_cameras_args(scene, tmp_path / "ref")) == 0
-    vol = [json.loads((tmp_path / d / "summary.json").read_text())["mesh"]["volume_cm3"] for d in ("scan", "ref")]
+    vol = [json.loads((d / "summary.json").read_text())["mesh"]["volume_cm3"] for d in (tmp_path / "scan",
+                                                                                        true_masks_run)]
     assert abs(vol[0] / vol[1] - 1.0) < 0.03, vol
     cv2.imwrite(str(masks / files[3].name), np.zeros((640, 480), np.uint8))  # portrait: not this photo's shape
     assert main(args + ["--out", str(tmp_path / "scan2")]) == 2
@@ -363,7 +375,7 @@ def test_masks_at_half_the_photos_size_are_scaled_and_a_turned_one_is_refused(sc
     assert f"{files[3].name}: mask is 480x640, frame" in err and "Traceback" not in err
 
 
-def test_cutout_masks_are_read_by_their_alpha_not_their_colours(scene, tmp_path, capsys):
+def test_cutout_masks_are_read_by_their_alpha_not_their_colours(scene, true_masks_run, tmp_path, capsys):
     """A background remover's PNG (the photo's colours, the background transparent) is the mask its alpha
     draws: read by colour, the object's dark pixels (the vase's shaded side) were background and carved."""
     import cv2
@@ -375,13 +387,10 @@ def test_cutout_masks_are_read_by_their_alpha_not_their_colours(scene, tmp_path,
         a = np.where(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) > 127, np.uint8(255), np.uint8(0))
         bgr = cv2.imread(str(img))
         cv2.imwrite(str(masks / f.name), np.dstack([bgr // 2, a]))  # colours mostly under 128: wrong by colour
-    args = _known_cameras_args(scene, tmp_path / "scan")
-    args[args.index("--masks") + 1] = str(masks)
-    args.remove("--quiet")
-    assert main(args) == 0
+    capsys.readouterr()
+    assert main(_masks_args(scene, tmp_path / "scan", masks)) == 0
     assert "have transparency (cut-outs" in capsys.readouterr().err
-    assert main(_known_cameras_args(scene, tmp_path / "ref")) == 0
-    assert (tmp_path / "scan" / "model.ply").read_bytes() == (tmp_path / "ref" / "model.ply").read_bytes()
+    assert (tmp_path / "scan" / "model.ply").read_bytes() == (true_masks_run / "model.ply").read_bytes()
 
 
 def test_silhouettes_confined_to_a_small_volume_touch_its_side_and_top(scene):
