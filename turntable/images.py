@@ -178,7 +178,9 @@ def read_alpha(path: str | Path) -> np.ndarray | None:
     transparent pixels) has one, a plain black-and-white mask has not. The
     header is read first (Pillow opens lazily), so a file without transparency
     is not decoded here. Upright as :func:`read_image` gives the colours: the
-    EXIF orientation is applied.
+    EXIF orientation is applied. A file larger than :data:`MAX_PIXELS` is
+    refused from its header, as by :func:`read_image`; one that cannot be read
+    gives None (:func:`read_image` says why).
     """
     import warnings
 
@@ -186,7 +188,14 @@ def read_alpha(path: str | Path) -> np.ndarray | None:
 
     path = Path(path)
     try:
-        with warnings.catch_warnings(), Image.open(path) as im:
+        data = path.read_bytes()
+    except OSError:
+        return None
+    _check_pixel_count(data, path)
+    if _is_heif(data):
+        return None  # HEIF masks: no transparency read here
+    try:
+        with warnings.catch_warnings(), Image.open(io.BytesIO(data)) as im:
             warnings.simplefilter("ignore")
             if not (im.mode in ("RGBA", "LA", "PA", "RGBa", "La") or "transparency" in im.info):
                 return None

@@ -87,18 +87,18 @@ def read_masks(masks_dir: Path, names: list[str], ws: WorkSize,
         if p is None:
             raise UserError(f"--masks {masks_dir}: no mask for frame {n} (expected {Path(n).stem}.png, or "
                             f"{Path(n).stem}_mask.png)")
-        m = read_image(p)
-        mh, mw = m.shape[:2]
+        alpha = read_alpha(p)
+        cutout = alpha is not None
+        if alpha is not None:  # a cut-out's colours are the photo's: a dark part of it is no background
+            cutouts.append(n)
+            g = alpha
+        else:
+            g = read_image(p).max(axis=2)
+        mh, mw = g.shape
         if (mh, mw) != (H, W):
             if abs(mw * H - W * mh) > 0.005 * W * mh:  # another shape, not the photo's scaled (a crop, turned)
                 raise UserError(f"{p}: mask is {mw}x{mh}, frame {n} is {W}x{H} (not the same shape scaled either)")
             scaled.append(n)
-        alpha = read_alpha(p)
-        cutout = alpha is not None and alpha.shape == m.shape[:2]
-        g = m.max(axis=2)
-        if alpha is not None and cutout:  # a cut-out's colours are the photo's: a dark part is no background
-            cutouts.append(n)
-            g = alpha
         top = int(g.max())
         if 0 < top <= 127 and not np.any((g != 0) & (g != top)):  # two values, 0 and a low one: a label image
             labels.append(n)
