@@ -14,14 +14,16 @@ subprocess, per sequence:
   carve (the box: ~1.3 %), a cup's cavity and the space under a chair's seat
   are seen by no silhouette; above the bar there, no silhouette can meet it.
 
-Objects: the built-in ``vase`` and ``figure`` (``turntable synth``), and
+Objects: the built-in ``vase``, ``figure`` and ``cup`` (``turntable synth``; the
+cup's inside, which no silhouette shows — its ideal hull is at ~1.8 % — comes
+from its rim, ``recon.openings``), and
 shapes of the kind people scan that the project's own tests never used,
 written here as meshes from signed distances (``--object FILE``): a teapot
 (a round body resting on the plane, a ring handle, a spout, a knob: the
 paper under the overhanging belly lies in its contact shadow), a bunny
 (ellipsoid body, head, two thin ears, a tail), a snowman (three stacked
-balls and a rod) and a box. ``--objects cup chair`` adds the built-in hull-
-limited ones; ``--objects offbox`` a box standing off the axis (balanced by a
+balls and a rod) and a box. ``--objects chair`` adds the built-in chair;
+``--objects offbox`` a box standing off the axis (balanced by a
 ball on a rod lying on the table, so that the synth's centring leaves it
 there). Albedo: ``white`` (0.85, 0.84, 0.82); ``--albedo R,G,B`` for another
 off-white.
@@ -184,7 +186,7 @@ def _render(work: Path, obj: str, backdrop: str, seed: int, size: str, albedo: s
 def main(argv: list[str]) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("work", help="folder for the renders and the runs (reused)")
-    ap.add_argument("--objects", nargs="+", default=["vase", "figure", *SHAPES],
+    ap.add_argument("--objects", nargs="+", default=["vase", "figure", "cup", *SHAPES],
                     choices=[*BUILT_IN, *SHAPES, *EXTRA_SHAPES])
     ap.add_argument("--backdrops", nargs="+", default=["dark", "light"], choices=["dark", "light"])
     ap.add_argument("--seeds", nargs="+", type=int, default=[3, 4])

@@ -41,6 +41,7 @@ goes where free space lies under it, the underside taken flat.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -53,7 +54,7 @@ from calib.camera import camera_centre_table, plane_homography, project_points
 from .silhouette_doubt import channel_max
 from .types import VoxelHull
 
-__all__ = ["Face", "Slab", "find_faces", "carve_above_faces", "carve_under_slabs", "same_top"]
+__all__ = ["Face", "Slab", "Sweep", "sweep", "find_faces", "carve_above_faces", "carve_under_slabs", "same_top"]
 
 STEP_MM = 0.5  # the sweep's step in height
 PX_PER_MM = 3.0  # the planes' raster ...
@@ -131,11 +132,67 @@ def _sections(hull: VoxelHull, heights, x0, z0, shape, px) -> list[np.ndarray]:
     return out
 
 
-def find_faces(images_rgb, masks, K, Ts, hull: VoxelHull) -> list[Face]:
-    """The raised horizontal faces the views' edges outline (see the module's docstring)."""
+@dataclass(frozen=True)
+class Sweep:
+    """The views' edges rectified onto horizontal planes ``y = heights[k]``, on a raster of the object's footprint.
+
+    Built once by :func:`sweep`; :func:`find_faces` and :func:`recon.openings.find_openings` read it.
+    """
+
+    heights: np.ndarray
+    step: float
+    sections: list[np.ndarray]  # the hull's section at each height, on the raster
+    edges: list[np.ndarray]  # each view's edge pixels (uint8)
+    K: np.ndarray
+    Ts: np.ndarray
+    x0: float
+    z0: float
+    px: float
+    shape: tuple[int, int]  # (nz, nx)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return (self.shape[1], self.shape[0])
+
+    def outline(self, k: int, share: float = EDGE_SHARE) -> np.ndarray:
+        """The texels where ``share`` of the views put an edge at height ``heights[k]``, within 2 mm of the hull."""
+        votes = np.zeros(self.shape, np.float32)
+        for e, T in zip(self.edges, self.Ts, strict=True):
+            votes += _warp(e, _plane_map(self.K, T, float(self.heights[k]), self.x0, self.z0, self.px), self.size,
+                           nearest=True)
+        near = np.ones((int(4 * self.px) + 1,) * 2, np.uint8)  # 2 mm round the hull's section
+        # the share of the views with an edge there (the hull is in every view: its working volume is)
+        return (votes >= share * len(self.Ts)) & (cv2.dilate(self.sections[k].astype(np.uint8), near) > 0)
+
+    @functools.cached_property
+    def peaks(self) -> list[tuple[int, float]]:
+        """``(k, share)`` for each height, bottom up, where a horizontal outline peaks (see the module's docstring).
+
+        A soft image (defocus) spreads a top's edge: fewer views put it on the same texels, and the outline the
+        stricter share finds is thin on both sides of the peak; the looser share's is sharp.
+        """
+        heights, step = self.heights, self.step
+        scores = {share: np.array([self.outline(k, share).sum() for k in range(len(heights))])
+                  for share in (EDGE_SHARE, SOFT_EDGE_SHARE)}
+        off = max(int(round(PEAK_OFFSET_MM / step)), 1)
+
+        def peak(k: int, score: np.ndarray) -> bool:
+            return bool(score[k] >= MIN_OUTLINE_MM * self.px and score[k] >= score[max(k - 2, 0):k + 3].max()
+                        and score[k] >= PEAK * max(score[k - off], score[k + off]))
+
+        out = []
+        for k in range(off, len(heights) - off):
+            share = next((s for s, score in scores.items() if peak(k, score)), None)
+            if float(heights[k]) >= MIN_HEIGHT_MM and share is not None:
+                out.append((k, share))
+        return out
+
+
+def sweep(images_rgb, masks, K, Ts, hull: VoxelHull) -> Sweep | None:
+    """The plane sweep of the views' edges over the hull's height (None for an empty hull)."""
     inside = np.asarray(hull.values) > 0
     if not inside.any():
-        return []
+        return None
     o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
     idx = np.argwhere(inside)
     lo, hi = o + idx.min(0) * v, o + idx.max(0) * v
@@ -143,42 +200,33 @@ def find_faces(images_rgb, masks, K, Ts, hull: VoxelHull) -> list[Face]:
     width, depth = hi[0] - lo[0] + 6.0, hi[2] - lo[2] + 6.0
     px = min(PX_PER_MM, math.sqrt(MAX_TEXELS / (width * depth)))  # a large object: a coarser raster
     shape = (int(math.ceil(depth * px)) + 1, int(math.ceil(width * px)) + 1)
-    size = (shape[1], shape[0])
     step = max(STEP_MM, (hi[1] + PEAK_OFFSET_MM) / MAX_HEIGHTS)
     heights = np.arange(MIN_HEIGHT_MM - PEAK_OFFSET_MM, hi[1] + PEAK_OFFSET_MM, step)
     edges = [_edges(im, m).astype(np.uint8) for im, m in zip(images_rgb, masks, strict=True)]
     sections = _sections(hull, heights, x0, z0, shape, px)
-    near = np.ones((int(4 * px) + 1,) * 2, np.uint8)  # 2 mm round the hull's section
+    return Sweep(heights, float(step), sections, edges, np.asarray(K, float), np.asarray(Ts, float), float(x0),
+                 float(z0), float(px), shape)
 
-    def outline(k: int, share: float = EDGE_SHARE) -> np.ndarray:
-        votes = np.zeros(shape, np.float32)
-        for e, T in zip(edges, Ts, strict=True):
-            votes += _warp(e, _plane_map(K, T, float(heights[k]), x0, z0, px), size, nearest=True)
-        # the share of the views with an edge there (the hull is in every view: its working volume is)
-        return (votes >= share * len(Ts)) & (cv2.dilate(sections[k].astype(np.uint8), near) > 0)
 
-    scores = {share: np.array([outline(k, share).sum() for k in range(len(heights))])
-              for share in (EDGE_SHARE, SOFT_EDGE_SHARE)}
-    off = max(int(round(PEAK_OFFSET_MM / step)), 1)
+def find_faces(images_rgb, masks, K, Ts, hull: VoxelHull, swept: Sweep | None = None) -> list[Face]:
+    """The raised horizontal faces the views' edges outline (see the module's docstring).
 
-    def peak(k: int, score: np.ndarray) -> bool:
-        return bool(score[k] >= MIN_OUTLINE_MM * px and score[k] >= score[max(k - 2, 0):k + 3].max()
-                    and score[k] >= PEAK * max(score[k - off], score[k + off]))
-
+    ``swept``: the sweep of these views over this hull, where the caller has it (:func:`sweep`).
+    """
+    sw = swept if swept is not None else sweep(images_rgb, masks, K, Ts, hull)
+    if sw is None:
+        return []
+    heights, step = sw.heights, sw.step
     faces: list[Face] = []
-    for k in range(off, len(heights) - off):
+    for k, share in sw.peaks:
         h = float(heights[k])
-        # a soft image (defocus) spreads a top's edge: fewer views put it on the same texels, and the
-        # outline the stricter share finds is thin on both sides of the peak; the looser share's is sharp
-        share = next((s for s, score in scores.items() if peak(k, score)), None)
-        if h < MIN_HEIGHT_MM or share is None:
-            continue
-        for face in _faces_at(h, outline(k, share), sections[k], images_rgb, K, Ts, x0, z0, px, size):
+        for face in _faces_at(h, sw.outline(k, share), sw.sections[k], images_rgb, K, Ts, sw.x0, sw.z0, sw.px,
+                              sw.size):
             # flat: nothing inside it outlines itself higher up (a lid's dome, a knob: their contours do)
-            r = max(int(round(INNER_MM * px)), 1)
+            r = max(int(round(INNER_MM * sw.px)), 1)
             inner = cv2.erode(face.region.astype(np.uint8), np.ones((2 * r + 1,) * 2, np.uint8)) > 0
             above = range(k + max(int(round(1.0 / step)), 1), min(k + int(round(RISE_MM / step)) + 1, len(heights)))
-            if not inner.any() or any((outline(j, share) & inner).sum() > RISE_SHARE * inner.sum() for j in above):
+            if not inner.any() or any((sw.outline(j, share) & inner).sum() > RISE_SHARE * inner.sum() for j in above):
                 continue
             if _stands_high(face, hull, Ts):
                 continue
@@ -341,9 +389,13 @@ def _uncovered_share(inside: np.ndarray, trial: np.ndarray, hull: VoxelHull, mas
                / max(float(m.sum()), 1.0) for m, T in zip(masks, Ts, strict=True))
 
 
-def carve_above_faces(hull: VoxelHull, images_rgb, masks, K, Ts) -> tuple[VoxelHull, list[tuple[Face, float]]]:
-    """The hull without the roof over its raised faces; and each face with the volume carved above it, mm^3."""
-    faces = find_faces(images_rgb, masks, K, Ts, hull)
+def carve_above_faces(hull: VoxelHull, images_rgb, masks, K, Ts,
+                      swept: Sweep | None = None) -> tuple[VoxelHull, list[tuple[Face, float]]]:
+    """The hull without the roof over its raised faces; and each face with the volume carved above it, mm^3.
+
+    ``swept``: :func:`sweep` of these views over this hull, where the caller has it.
+    """
+    faces = find_faces(images_rgb, masks, K, Ts, hull, swept)
     if not faces:
         return hull, []
     vals = np.asarray(hull.values, np.float32).copy()

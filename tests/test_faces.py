@@ -106,10 +106,13 @@ def _boxes_hit(o, d, boxes):
     return t, n
 
 
-def _render(T_all, shape: str, rng):
-    """White object on a grey paper disc, lit from above and behind the camera; (images, masks)."""
+def _render(T_all, shape: str, rng, restyle=None):
+    """White object on a grey paper disc, lit from above and behind the camera; (images, masks).
+
+    ``restyle(i, points, normals, shade)``: the object's grey in view ``i`` from its points (table mm) and
+    normals where the rays meet it, and the shading it would have (a glossy top's reflections)."""
     images, masks = [], []
-    for T in T_all:
+    for i, T in enumerate(T_all):
         o, d = _rays(T)
         if shape == "column":  # lit evenly all round (no shading): only the band marks it
             t, band = _column_hit(o, d)
@@ -127,6 +130,8 @@ def _render(T_all, shape: str, rng):
         shade = 40.0 + 180.0 * np.clip(n @ light, 0.0, 1.0)
         if shape == "column":
             shade = np.where(band, 90.0, 200.0)
+        if restyle is not None:
+            shade = restyle(i, o + np.where(np.isfinite(t), t, 0.0)[:, None] * d, n, shade)
         with np.errstate(divide="ignore", invalid="ignore"):
             tp = -o[1] / d[:, 1]
         p = o + np.where(tp > 0, tp, 0.0)[:, None] * d

@@ -175,10 +175,11 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
                     f"({hull_stage.volume_text(skirt.volume_mm3)})")
             progress.note(f"hull: {note}")
             carved.report.setdefault("notes", []).append(note)
-    from recon.faces import carve_above_faces, same_top
+    from recon.faces import carve_above_faces, same_top, sweep
 
     with progress.stage("flat tops"):  # the roof no silhouette carves over a plinth's or a box's top
-        hull, roofs = carve_above_faces(hull, images_rgb, masks, K, Ts)
+        swept = sweep(images_rgb, masks, K, Ts, hull)  # the views' edges over horizontal planes: openings use it too
+        hull, roofs = carve_above_faces(hull, images_rgb, masks, K, Ts, swept)
     tops: list[list] = []  # [face, mm3]: a top found again half a mm higher is noted once, with both volumes
     for face, mm3 in roofs:
         same = next((t for t in tops if same_top(face, t[0])), None)
@@ -222,7 +223,7 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
     if opts.fusion:
         from .stages.fusion import run_fusion
 
-        mesh, fused, fusion_note = run_fusion(images_rgb, masks, K, Ts, hull, hull_mesh, opts, progress)
+        mesh, fused, fusion_note = run_fusion(images_rgb, masks, K, Ts, hull, hull_mesh, opts, progress, swept)
 
     from recon.colorize import color_vertices
 

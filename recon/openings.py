@@ -1,0 +1,275 @@
+"""Openings: a vessel's rim, outlined all round by the views' edges, and the inside under it that no view sees.
+
+A white cup's inside is what neither the silhouettes nor stereo can show:
+every silhouette's upper edge is the far half of the rim, so the hull keeps
+the cone the rim allows over the opening and is solid down to the table;
+a plain white inner wall gives stereo nothing to match, and its shading,
+fixed to the light as the cup turns, is no evidence of depth either. What
+the views do show is the rim: its far half is the silhouette's edge, its
+near half an edge inside it (the outer wall below, the far inner wall seen
+over it), and rectified onto the plane at the rim's height every view puts
+both halves on the same circle (the plane sweep of :mod:`recon.faces`).
+
+An *opening* is such a horizontal outline that
+
+- closes the region it encloses by itself, all round (``CLOSED_SHARE`` of
+  the region's border lies on the outline; an edge seen only part of the
+  way round, closed by the hull's section, is none);
+- encloses a region over which the views do not agree on a colour (each
+  sees another part of the inside through it; a flat top, which they all see
+  alike, is :mod:`recon.faces`' work), at least ``MIN_OPENING_MM2`` large;
+- is a rim, not a top's single edge: the outline's band is wider than one
+  edge's by ``MIN_RIM_MM`` or more (a glossy flat top, which the views see
+  reflecting different things, is closed all round too);
+- has nothing standing on it (the hull over it no higher than the roof the
+  rim itself leaves, and no outline inside it higher up: a knob).
+
+Under it the inside is hollowed as a vessel's: down each column of the
+opening, hull voxels farther than the wall from the hull's outside (the
+wall: the rim's width, as the outline and the hull's section show it) and
+higher than the floor (a floor outlined inside the opening where the views
+see one, else a floor as thick as the wall on the hull's bottom), with the
+roof over the opening; a surface stereo observed stops the descent, and
+nothing is hollowed that would leave a pixel of a view's silhouette with no
+hull behind it. It is a prior, as the cavity prior of :mod:`recon.surface`
+is: no view sees the lower inside; the run says so in its summary.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from .faces import (
+    AGREE_DN,
+    EDGE_SHARE,
+    GUARD_PX,
+    MIN_AGREE,
+    MIN_OUTLINE_MM,
+    RISE_MM,
+    RISE_SHARE,
+    Face,
+    Sweep,
+    _plane_map,
+    _stands_high,
+    _uncovered_share,
+    _warp,
+    sweep,
+)
+from .silhouette_doubt import channel_max
+from .types import VoxelHull
+
+__all__ = ["Opening", "find_openings", "hollow_openings"]
+
+MIN_OPENING_MM2 = 100.0  # an opening's least area (a pen holder 12 mm across)
+CLOSED_SHARE = 0.9  # this share of the region's border lies on the outline itself
+MAX_AGREE = 0.3  # the views agree on a colour over at most this share of it (more: a flat top's)
+BAND_MM = 2.0  # the outline's band reaches this far past an edge (the hull's section's, at most)
+MIN_RIM_MM = 1.0  # a rim this wide at least: two edges, the wall's inner and outer, not a top's one
+MIN_WALL_MM = 1.5  # the thinnest wall left
+FLOOR_DROP_MM = 3.0  # a floor is outlined this far under the rim or more ...
+FLOOR_INSET_MM = 2.0  # ... inside the opening, this far from its border, ...
+RING_RADIUS = 0.5  # ... its texels a median this share of the opening's radius from its centre ...
+RING_BINS = 60  # ... and all round it, closely: in this many of the 72 sectors of 5 deg
+TAU_MM = 3.0  # the signed distance's band at the hollowed surface
+
+
+@dataclass(frozen=True)
+class Opening:
+    """A rim ``height_mm`` above the table round ``region`` (its inside, on the raster; i: z, j: x)."""
+
+    height_mm: float
+    region: np.ndarray  # (nz, nx) bool
+    origin_xz: tuple[float, float]
+    px_per_mm: float
+    wall_mm: float
+    floor_mm: float | None  # the floor the views outline inside it, if any
+
+    @property
+    def area_mm2(self) -> float:
+        return float(self.region.sum()) / self.px_per_mm ** 2
+
+
+def _agreement(sw: Sweep, h: float, images_rgb) -> np.ndarray:
+    """Per texel of the plane at ``h``: the share of the views that see it and agree with their median colour."""
+    rect = np.stack([_warp(im, _plane_map(sw.K, T, h, sw.x0, sw.z0, sw.px), sw.size)
+                     for im, T in zip(images_rgb, sw.Ts, strict=True)]).astype(np.float32)
+    ones = np.ones(images_rgb[0].shape[:2], np.uint8)
+    seen = np.stack([_warp(ones, _plane_map(sw.K, T, h, sw.x0, sw.z0, sw.px), sw.size, nearest=True) > 0
+                     for T in sw.Ts])
+    rect[~seen] = np.nan
+    med = np.nanmedian(rect, axis=0)
+    return np.nansum(channel_max(np.abs(rect - med)) < AGREE_DN, axis=0) / np.maximum(seen.sum(0), 1)
+
+
+def _rim_mm(region: np.ndarray, section: np.ndarray, band: np.ndarray, px: float) -> float:
+    """The rim's width: from the region's border to the hull's outside, less the band's spread past an edge.
+
+    The outline is a band round each edge (the edges' blur, the views' small disagreements); its reach past
+    the hull's section, where the outer edge is, is its reach inside the opening too. A top's single edge
+    gives about nothing (a white box's top: -0.7 mm; a domed lid's rim: 0.7 mm), a cup's rim its wall
+    (the synth's cup, 3 mm: 3.1 mm).
+    """
+    dist = cv2.distanceTransform(np.pad(section, 1).astype(np.uint8), cv2.DIST_L2, 5)[1:-1, 1:-1] / px
+    border = region & ~(cv2.erode(region.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)
+    width = float(np.median(dist[border]))
+    outside = cv2.distanceTransform((~section).astype(np.uint8), cv2.DIST_L2, 5) / px
+    past = band & ~section
+    spread = min(float(np.percentile(outside[past], 90)), BAND_MM) if past.any() else 0.0
+    return width - spread
+
+
+def _rings(texels: np.ndarray, region: np.ndarray, px: float) -> bool:
+    """Whether outline texels inside an opening ring it as a floor's edge does: long enough, all round it and
+    away from its centre (an edge that stands still in the images as the object turns, a shadow's on the
+    inner wall, is put on the same texels only near the axis, where every view's parallax is small)."""
+    if texels.sum() < 0.5 * MIN_OUTLINE_MM * px:
+        return False
+    ii, jj = np.nonzero(region)
+    ci, cj = ii.mean(), jj.mean()
+    ti, tj = np.nonzero(texels)
+    r = np.hypot(ti - ci, tj - cj)
+    if np.median(r) < RING_RADIUS * np.sqrt(region.sum() / np.pi):
+        return False
+    bins = np.unique((np.degrees(np.arctan2(ti - ci, tj - cj)) // 5).astype(int))
+    return len(bins) >= RING_BINS
+
+
+def find_openings(images_rgb, masks, K, Ts, hull: VoxelHull, swept: Sweep | None = None) -> list[Opening]:
+    """The openings the views' edges outline (see the module's docstring), top down."""
+    sw = swept if swept is not None else sweep(images_rgb, masks, K, Ts, hull)
+    if sw is None:
+        return []
+    heights, step, px = sw.heights, sw.step, sw.px
+    peaks = sw.peaks
+    found: list[Opening] = []
+    for k, share in reversed(peaks):
+        h = float(heights[k])
+        outline = sw.outline(k, share)
+        band = cv2.dilate(outline.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        n, lab = cv2.connectedComponents((~(band | ~sw.sections[k])).astype(np.uint8), connectivity=4)
+        edge = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
+        agree = None
+        for c in range(1, n):
+            if c in edge:
+                continue
+            region = ndimage.binary_fill_holes(lab == c)  # specks of outline inside it are no border of it
+            if region.sum() < MIN_OPENING_MM2 * px ** 2:
+                continue
+            if any((region & f.region).any() for f in found):  # under an opening found higher up
+                continue
+            rim = (cv2.dilate(region.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0) & ~region
+            if (rim & band).sum() < CLOSED_SHARE * rim.sum():
+                continue
+            if agree is None:
+                agree = _agreement(sw, h, images_rgb)
+            if (agree[region] >= MIN_AGREE).mean() > MAX_AGREE:
+                continue
+            if _stands_high(Face(h, region, np.zeros(region.shape + (3,), np.float32), (sw.x0, sw.z0), px), hull, Ts):
+                continue
+            inner = cv2.erode(region.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=max(int(px), 1)) > 0
+            above = range(k + max(int(round(1.0 / step)), 1), min(k + int(round(RISE_MM / step)) + 1, len(heights)))
+            if not inner.any() or any((sw.outline(j, share) & inner).sum() > RISE_SHARE * inner.sum() for j in above):
+                continue
+            rim_mm = _rim_mm(region, sw.sections[k], band, px)
+            if rim_mm < MIN_RIM_MM:  # one edge round it: a top's (a glossy one the views disagree on)
+                continue
+            wall = max(rim_mm, MIN_WALL_MM)
+            r = max(int(round(FLOOR_INSET_MM * px)), 1)
+            deep = cv2.erode(region.astype(np.uint8), np.ones((2 * r + 1,) * 2, np.uint8)) > 0
+            floor = next((float(heights[j]) for j, s in reversed(peaks)
+                          if heights[j] <= h - FLOOR_DROP_MM and s == EDGE_SHARE
+                          and _rings(sw.outline(j, s) & deep, region, px)), None)
+            found.append(Opening(h, region, (sw.x0, sw.z0), px, wall, floor))
+    return found
+
+
+def _columns(op: Opening, hull: VoxelHull, top: np.ndarray) -> np.ndarray:
+    """(Nx, Nz) bool: the grid's columns over the texels of ``top`` (a raster of ``op``'s)."""
+    o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
+    nx, _, nz = np.asarray(hull.values).shape
+    X, Z = np.meshgrid(o[0] + np.arange(nx) * v, o[2] + np.arange(nz) * v, indexing="ij")
+    i = np.rint((Z - op.origin_xz[1]) * op.px_per_mm).astype(int)
+    j = np.rint((X - op.origin_xz[0]) * op.px_per_mm).astype(int)
+    ok = (i >= 0) & (j >= 0) & (i < top.shape[0]) & (j < top.shape[1])
+    out = np.zeros(X.shape, bool)
+    out[ok] = top[i[ok], j[ok]]
+    return out
+
+
+def _inside_of(op: Opening, hull: VoxelHull, inside: np.ndarray, solid: np.ndarray | None) -> np.ndarray:
+    """The voxels hollowed under (and over) the opening: a bool grid like the hull's."""
+    o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
+    ny = inside.shape[1]
+    y = o[1] + np.arange(ny) * v
+    jr = min(max(int(np.floor((op.height_mm - o[1]) / v)), 0), ny - 1)  # the rim's slice
+    # the cavity's top: the rim's slice of the hull farther than the wall from its outside, where it meets the
+    # opening (the outline's band eats into the opening's border)
+    lateral_rim = ndimage.distance_transform_edt(np.pad(inside[:, jr, :], 1))[1:-1, 1:-1] * v
+    cols = _columns(op, hull, op.region)
+    lab, _ = ndimage.label(lateral_rim > op.wall_mm)
+    top = np.isin(lab, np.unique(lab[cols & (lab > 0)])) & (lab > 0)
+    top |= cols & inside[:, jr, :]
+    floor_y = np.where(inside, np.arange(ny)[None, :, None], ny).min(axis=1)  # (Nx, Nz) the hull's bottom slice
+    E = np.zeros_like(inside)
+    E[:, jr + 1:, :] = inside[:, jr + 1:, :] & top[:, None, :]  # the roof over the opening
+    if solid is not None:
+        E[:, jr + 1:, :] &= ~solid[:, jr + 1:, :]
+    cur = top.copy()
+    for j in range(jr, -1, -1):
+        lateral = ndimage.distance_transform_edt(np.pad(inside[:, j, :], 1))[1:-1, 1:-1] * v
+        ok = inside[:, j, :] & (lateral > op.wall_mm) & ((j - floor_y + 0.5) * v > op.wall_mm)
+        if op.floor_mm is not None:
+            ok &= y[j] > op.floor_mm
+        if solid is not None:
+            ok &= ~solid[:, j, :]
+        cur &= ok
+        if not cur.any():
+            break
+        E[:, j, :] = cur
+    return E
+
+
+def hollow_openings(hull: VoxelHull, values: np.ndarray, openings: list[Opening], masks, K, Ts,
+                    solid_pts_table: np.ndarray | None = None) -> tuple[np.ndarray, list[tuple[Opening, float]]]:
+    """``values`` (a signed grid on the hull's, inside positive) with each opening's inside hollowed.
+
+    ``solid_pts_table``: surface points stereo observed (table mm); the descent stops at them. An opening
+    whose hollowing would leave more than ``GUARD_PX`` of a view's silhouette with no hull behind it is left.
+    Returns the grid and each opening hollowed with its volume, mm^3.
+    """
+    vals = np.asarray(values, np.float32).copy()
+    o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
+    solid = None
+    if solid_pts_table is not None and len(solid_pts_table):
+        g = np.rint((np.asarray(solid_pts_table, float) - o) / v).astype(int)
+        ok = np.all((g >= 0) & (g < np.array(vals.shape)), axis=1)
+        solid = np.zeros(vals.shape, bool)
+        solid[tuple(g[ok].T)] = True
+        solid = ndimage.binary_dilation(solid)
+    done = []
+    for op in openings:
+        inside = vals > 0
+        E = _inside_of(op, hull, inside, solid)
+        if not E.any():
+            continue
+        if _uncovered_share(inside, inside & ~E, hull, masks, K, Ts) > GUARD_PX:
+            continue
+        # a signed distance to the hollowed surface in a box round it: negative inside the hollow, and no
+        # larger than the distance to it outside
+        idx = np.argwhere(E)
+        pad = int(np.ceil(TAU_MM / v)) + 2
+        lo = np.maximum(idx.min(0) - pad, 0)
+        hi = np.minimum(idx.max(0) + pad + 1, vals.shape)
+        box = tuple(slice(a, b) for a, b in zip(lo, hi, strict=True))
+        e = E[box]
+        d_in = ndimage.distance_transform_edt(e) * v
+        d_out = ndimage.distance_transform_edt(~e) * v
+        sub = vals[box]
+        vals[box] = np.where(e, -np.minimum(d_in - 0.5 * v, TAU_MM).clip(0.5 * v),
+                             np.minimum(sub, d_out - 0.5 * v)).astype(np.float32)
+        done.append((op, float(E.sum()) * v ** 3))
+    return vals, done

@@ -1,0 +1,159 @@
+"""Openings (recon.openings): a plain white cup's rim, outlined all round by the views' edges, and the inside under
+it that no view sees hollowed; a domed lid, a box's flat top and a ball left solid. The pipeline's fusion stage
+hollows the cup though stereo finds nothing on it."""
+
+from __future__ import annotations
+
+import io
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+from synthetic_images import hull_holds
+from test_faces import _cameras, _hull, _render
+
+from recon.carving import carve_hull
+from recon.meshing import mesh_from_hull, mesh_stats
+from recon.openings import find_openings, hollow_openings
+from recon.types import VoxelHull
+from turntable.cameras_io import read_cameras
+from turntable.synth import SynthOptions, make_sequence
+
+W, H, F_PX = 640, 480, 750.0
+K = np.array([[F_PX, 0.0, (W - 1) / 2], [0.0, F_PX, (H - 1) / 2], [0.0, 0.0, 1.0]])
+RIM_Y = 69.4  # the synth's cup (turntable.synth.objects): its rim's top, 3 mm walls, its inside down to 5 mm
+
+
+def _synth(folder, obj: str):
+    """A white (uniform off-white) ``obj`` rendered by the synth, 18 views, dark room; (images, masks, K, Ts,
+    hull, the true mesh) from its true cameras and silhouettes."""
+    import cv2
+    import trimesh
+
+    make_sequence(folder, SynthOptions(object=obj, backdrop="dark", seed=3, width=W, height=H, focal_px=F_PX,
+                                       frames=18, step_deg=20.0, albedo=(0.85, 0.84, 0.82)))
+    seq = read_cameras(folder / "cameras_gt.json")
+    images = [np.ascontiguousarray(cv2.imread(str(folder / f.image))[..., ::-1]) for f in seq.frames]
+    masks = np.stack([cv2.imread(str(folder / "masks" / (Path(f.image).stem + ".png")), 0) > 127
+                      for f in seq.frames])
+    K_, Ts = seq.intrinsics.K, np.stack([f.T_cam_table for f in seq.frames])
+    hull = carve_hull(masks, K_, Ts, radius_mm=60.0, height_mm=130.0, resolution=128, max_rejections=0)
+    return images, masks, K_, Ts, hull, trimesh.load(folder / "object_gt.ply")
+
+
+@pytest.fixture(scope="module")
+def cup_scene(tmp_path_factory):
+    return _synth(tmp_path_factory.mktemp("white_cup"), "cup")
+
+
+def _mesh(values, hull):
+    mesh = mesh_from_hull(VoxelHull(values=values, origin_table=hull.origin_table, voxel_mm=hull.voxel_mm))
+    st = mesh_stats(mesh)
+    assert st.watertight and st.n_bodies == 1
+    return mesh
+
+
+def _chamfer_mm(mesh, truth) -> float:
+    """Mean of the two mean nearest distances between 20 000 points sampled on each surface."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    a = trimesh.sample.sample_surface(trimesh.Trimesh(mesh.vertices_table, mesh.faces), 20_000, seed=0)[0]
+    b = trimesh.sample.sample_surface(truth, 20_000, seed=0)[0]
+    return 0.5 * (cKDTree(a).query(b)[0].mean() + cKDTree(b).query(a)[0].mean())
+
+
+def _r_out(y):
+    return 27.0 + 11.0 * (np.asarray(y) / 68.0) ** 1.4
+
+
+def test_a_white_cups_rim_is_an_opening_and_its_inside_is_hollowed(cup_scene):
+    images, masks, K_, T, hull, truth = cup_scene
+    found = find_openings(images, masks, K_, T, hull)
+    assert len(found) == 1
+    op = found[0]
+    assert abs(op.height_mm - RIM_Y) <= 3.0
+    assert 0.7 * np.pi * (_r_out(68.0) - 3.0) ** 2 < op.area_mm2 < np.pi * (_r_out(68.0) - 3.0) ** 2
+    assert 1.5 <= op.wall_mm <= 5.0
+    assert op.floor_mm is None  # no view at 30 deg sees the floor 63 mm down a cup 70 mm across
+    # the silhouettes' hull is solid inside: the cup full to its rim, and the roof over it
+    inside = np.array([[0.0, y, 0.0] for y in np.arange(10.0, RIM_Y + 6.0, 1.0)])
+    assert hull_holds(hull, inside).all()
+    values, done = hollow_openings(hull, hull.values, found, masks, K_, T)
+    assert len(done) == 1 and done[0][1] > 150_000.0  # mm^3
+    carved = VoxelHull(values=values, origin_table=hull.origin_table, voxel_mm=hull.voxel_mm)
+    assert not hull_holds(carved, inside).any()
+    # the walls and the floor stay: a point in the middle of each
+    walls = np.array([[np.cos(a) * (_r_out(y) - 1.5), y, np.sin(a) * (_r_out(y) - 1.5)]
+                      for a in np.linspace(0, 2 * np.pi, 24, endpoint=False) for y in (10.0, 35.0, 60.0)])
+    floor = np.array([[x, 2.5, z] for x in (-10.0, 0.0, 10.0) for z in (-10.0, 0.0, 10.0)])
+    assert hull_holds(carved, walls).all() and hull_holds(carved, floor).all()
+    # one closed body, near the cup (measured: Chamfer 0.76 mm against the hull's 2.45 mm)
+    before, after = _mesh(hull.values, hull), _mesh(values, hull)
+    assert _chamfer_mm(after, truth) < 0.4 * _chamfer_mm(before, truth)
+    assert 0.85 * truth.volume < mesh_stats(after).volume_mm3 < 1.15 * truth.volume
+
+
+def test_a_surface_stereo_saw_stops_the_hollowing(cup_scene):
+    """Points seen 30 mm above the table inside the cup (a floor stereo found there, say): nothing under
+    them is hollowed, everything over them is."""
+    images, masks, K_, T, hull, _ = cup_scene
+    found = find_openings(images, masks, K_, T, hull)
+    g = np.arange(-25.0, 25.5, 0.5)
+    seen = np.stack(np.meshgrid(g, [30.0], g, indexing="ij"), -1).reshape(-1, 3)
+    seen = seen[np.hypot(seen[:, 0], seen[:, 2]) < 25.0]
+    values, done = hollow_openings(hull, hull.values, found, masks, K_, T, seen)
+    carved = VoxelHull(values=values, origin_table=hull.origin_table, voxel_mm=hull.voxel_mm)
+    assert len(done) == 1
+    assert not hull_holds(carved, np.array([[0.0, y, 0.0] for y in np.arange(34.0, RIM_Y, 1.0)])).any()
+    assert hull_holds(carved, np.array([[0.0, y, 0.0] for y in np.arange(6.0, 29.0, 1.0)])).all()
+
+
+@pytest.mark.parametrize("shape", ["lid", "box", "sphere"])
+def test_no_opening_on_a_domed_lid_a_flat_top_or_a_ball(shape):
+    """A round box's domed lid (its rim a horizontal outline all round, but one edge, not a rim's two, and the
+    views agree on the plain dome inside it: 0.87 of it), a box's flat top (the views agree on it; one edge,
+    -0.7 mm of rim) and a ball: nothing found."""
+    T = _cameras()
+    images, masks = _render(T, shape, np.random.default_rng(11))
+    assert find_openings(images, masks, K, T, _hull(masks, T)) == []
+
+
+def test_no_opening_on_a_glossy_flat_top_the_views_disagree_on():
+    """A white box whose flat top mirrors a room (a view-dependent pattern on it: each texel sees another
+    colour in each view, as through an opening): closed all round, the views disagree, but its outline is one
+    edge, not a rim's two: nothing found. Without the rim's test the box would be hollowed."""
+    T = _cameras()
+
+    def glossy_top(i, p, n, shade):
+        return np.where(n[:, 1] > 0.5, 185.0 + 45.0 * np.sin(p[:, 0] / 20.0 + 0.9 * i)
+                        * np.cos(p[:, 2] / 25.0 - 0.5 * i), shade)
+
+    images, masks = _render(T, "box", np.random.default_rng(12), glossy_top)
+    assert find_openings(images, masks, K, T, _hull(masks, T)) == []
+
+
+def test_no_opening_on_a_white_vases_flat_top(tmp_path):
+    """The synth's vase: its narrow neck ends in a flat top, a horizontal outline all round like a cup's rim,
+    but the views agree on what lies inside it (a surface at that height): no opening."""
+    images, masks, K_, T, hull, _ = _synth(tmp_path / "vase", "vase")
+    assert find_openings(images, masks, K_, T, hull) == []
+
+
+def test_the_fusion_stage_hollows_a_plain_cup_that_stereo_cannot_see(cup_scene):
+    """Through the fusion stage: stereo carves nothing of the plain cup's inside, the opening does; the model
+    is one closed body near the cup and the summary's note says what was done and that no view saw it."""
+    from recon.meshing import clip_to_hull
+    from turntable.progress import Progress
+    from turntable.stages.fusion import run_fusion
+
+    images, masks, K_, T, hull, truth = cup_scene
+    hull_mesh = clip_to_hull(mesh_from_hull(hull), hull)
+    opts = types.SimpleNamespace(max_faces=50_000)
+    mesh, _, note = run_fusion(images, masks, K_, T, hull, hull_mesh, opts, Progress(io.StringIO(), enabled=False))
+    assert "an opening" in note and "no view sees hollowed" in note, note
+    st = mesh_stats(mesh)
+    assert st.watertight and st.n_bodies == 1
+    assert 0.85 * truth.volume < st.volume_mm3 < 1.15 * truth.volume
+    assert _chamfer_mm(mesh, truth) < 0.4 * _chamfer_mm(hull_mesh, truth)
