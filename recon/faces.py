@@ -165,24 +165,32 @@ class Sweep:
         return (votes >= share * len(self.Ts)) & (cv2.dilate(self.sections[k].astype(np.uint8), near) > 0)
 
     @functools.cached_property
+    def scores(self) -> dict[float, np.ndarray]:
+        """Outline texels at each height, for the strict and the loose edge share."""
+        return {share: np.array([self.outline(k, share).sum() for k in range(len(self.heights))])
+                for share in (EDGE_SHARE, SOFT_EDGE_SHARE)}
+
+    @functools.cached_property
     def peaks(self) -> list[tuple[int, float]]:
         """``(k, share)`` for each height, bottom up, where a horizontal outline peaks (see the module's docstring).
 
         A soft image (defocus) spreads a top's edge: fewer views put it on the same texels, and the outline the
         stricter share finds is thin on both sides of the peak; the looser share's is sharp.
         """
+        return self.peaks_with(PEAK)
+
+    def peaks_with(self, ratio: float) -> list[tuple[int, float]]:
+        """:attr:`peaks` where a peak has ``ratio`` times the outline texels of ``PEAK_OFFSET_MM`` above and below."""
         heights, step = self.heights, self.step
-        scores = {share: np.array([self.outline(k, share).sum() for k in range(len(heights))])
-                  for share in (EDGE_SHARE, SOFT_EDGE_SHARE)}
         off = max(int(round(PEAK_OFFSET_MM / step)), 1)
 
         def peak(k: int, score: np.ndarray) -> bool:
             return bool(score[k] >= MIN_OUTLINE_MM * self.px and score[k] >= score[max(k - 2, 0):k + 3].max()
-                        and score[k] >= PEAK * max(score[k - off], score[k + off]))
+                        and score[k] >= ratio * max(score[k - off], score[k + off]))
 
         out = []
         for k in range(off, len(heights) - off):
-            share = next((s for s, score in scores.items() if peak(k, score)), None)
+            share = next((s for s, score in self.scores.items() if peak(k, score)), None)
             if float(heights[k]) >= MIN_HEIGHT_MM and share is not None:
                 out.append((k, share))
         return out

@@ -15,12 +15,16 @@ An *opening* is such a horizontal outline that
 - closes the region it encloses by itself, all round (``CLOSED_SHARE`` of
   the region's border lies on the outline; an edge seen only part of the
   way round, closed by the hull's section, is none);
-- encloses a region over which the views do not agree on a colour (each
-  sees another part of the inside through it; a flat top, which they all see
-  alike, is :mod:`recon.faces`' work), at least ``MIN_OPENING_MM2`` large;
+- encloses at least ``MIN_OPENING_MM2``;
 - is a rim, not a top's single edge: the outline's band is wider than one
   edge's by ``MIN_RIM_MM`` or more (a glossy flat top, which the views see
-  reflecting different things, is closed all round too);
+  reflecting different things, is closed all round too; the flat tops measured
+  give -1.3 to 0.1 mm, a vase's rounded top 2.0, the synth's cup 2.5 to 4.3);
+- under ``SURE_RIM_MM`` of rim, encloses a region over which the views do not
+  agree on a colour (each sees another part of the inside through it; a flat
+  top with a rounded edge, which they all see alike, is not an opening). An
+  evenly lit inside looks alike from every view too (the synth's cup under one
+  of its lights: 0.99 of it agrees), so a wider rim is enough;
 - has nothing standing on it (the hull over it no higher than the roof the
   rim itself leaves, and no outline inside it higher up: a knob).
 
@@ -64,11 +68,13 @@ from .types import VoxelHull
 
 __all__ = ["Opening", "find_openings", "hollow_openings"]
 
+RIM_PEAK = 1.5  # a rim's outline peaks less sharply than a flat top's edge: a rounded rim spans its thickness
 MIN_OPENING_MM2 = 100.0  # an opening's least area (a pen holder 12 mm across)
 CLOSED_SHARE = 0.9  # this share of the region's border lies on the outline itself
 MAX_AGREE = 0.3  # the views agree on a colour over at most this share of it (more: a flat top's)
 BAND_MM = 2.0  # the outline's band reaches this far past an edge (the hull's section's, at most)
-MIN_RIM_MM = 1.0  # a rim this wide at least: two edges, the wall's inner and outer, not a top's one
+MIN_RIM_MM = 1.0  # a rim this wide at least: two edges, the wall's inner and outer, not a top's one ...
+SURE_RIM_MM = 3.0  # ... and from this wide the views need not disagree inside it (an evenly lit inside)
 MIN_WALL_MM = 1.5  # the thinnest wall left
 FLOOR_DROP_MM = 3.0  # a floor is outlined this far under the rim or more ...
 FLOOR_INSET_MM = 2.0  # ... inside the opening, this far from its border, ...
@@ -144,7 +150,7 @@ def find_openings(images_rgb, masks, K, Ts, hull: VoxelHull, swept: Sweep | None
     if sw is None:
         return []
     heights, step, px = sw.heights, sw.step, sw.px
-    peaks = sw.peaks
+    peaks = sw.peaks_with(RIM_PEAK)
     found: list[Opening] = []
     for k, share in reversed(peaks):
         h = float(heights[k])
@@ -164,23 +170,24 @@ def find_openings(images_rgb, masks, K, Ts, hull: VoxelHull, swept: Sweep | None
             rim = (cv2.dilate(region.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0) & ~region
             if (rim & band).sum() < CLOSED_SHARE * rim.sum():
                 continue
-            if agree is None:
-                agree = _agreement(sw, h, images_rgb)
-            if (agree[region] >= MIN_AGREE).mean() > MAX_AGREE:
+            rim_mm = _rim_mm(region, sw.sections[k], band, px)
+            if rim_mm < MIN_RIM_MM:  # one edge round it: a top's (a glossy one the views disagree on)
                 continue
+            if rim_mm < SURE_RIM_MM:  # a narrow rim, or a top's rounded edge: the inside must look like one
+                if agree is None:
+                    agree = _agreement(sw, h, images_rgb)
+                if (agree[region] >= MIN_AGREE).mean() > MAX_AGREE:
+                    continue
             if _stands_high(Face(h, region, np.zeros(region.shape + (3,), np.float32), (sw.x0, sw.z0), px), hull, Ts):
                 continue
             inner = cv2.erode(region.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=max(int(px), 1)) > 0
             above = range(k + max(int(round(1.0 / step)), 1), min(k + int(round(RISE_MM / step)) + 1, len(heights)))
             if not inner.any() or any((sw.outline(j, share) & inner).sum() > RISE_SHARE * inner.sum() for j in above):
                 continue
-            rim_mm = _rim_mm(region, sw.sections[k], band, px)
-            if rim_mm < MIN_RIM_MM:  # one edge round it: a top's (a glossy one the views disagree on)
-                continue
             wall = max(rim_mm, MIN_WALL_MM)
             r = max(int(round(FLOOR_INSET_MM * px)), 1)
             deep = cv2.erode(region.astype(np.uint8), np.ones((2 * r + 1,) * 2, np.uint8)) > 0
-            floor = next((float(heights[j]) for j, s in reversed(peaks)
+            floor = next((float(heights[j]) for j, s in reversed(sw.peaks)
                           if heights[j] <= h - FLOOR_DROP_MM and s == EDGE_SHARE
                           and _rings(sw.outline(j, s) & deep, region, px)), None)
             found.append(Opening(h, region, (sw.x0, sw.z0), px, wall, floor))
