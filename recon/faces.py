@@ -54,7 +54,8 @@ from calib.camera import camera_centre_table, plane_homography, project_points
 from .silhouette_doubt import channel_max
 from .types import VoxelHull
 
-__all__ = ["Face", "Slab", "Sweep", "sweep", "find_faces", "carve_above_faces", "carve_under_slabs", "same_top"]
+__all__ = ["Face", "Slab", "Sweep", "sweep", "find_faces", "carve_above_faces", "carve_under_slabs", "same_top",
+           "uncovered_share"]
 
 STEP_MM = 0.5  # the sweep's step in height
 PX_PER_MM = 3.0  # the planes' raster ...
@@ -153,6 +154,10 @@ class Sweep:
     @property
     def size(self) -> tuple[int, int]:
         return (self.shape[1], self.shape[0])
+
+    def rectify(self, image: np.ndarray, T: np.ndarray, h: float, nearest: bool = False) -> np.ndarray:
+        """``image`` (seen from ``T``) warped onto the plane ``y = h``, on the sweep's raster (0 off the image)."""
+        return _warp(image, _plane_map(self.K, T, h, self.x0, self.z0, self.px), self.size, nearest=nearest)
 
     def outline(self, k: int, share: float = EDGE_SHARE) -> np.ndarray:
         """The texels where ``share`` of the views put an edge at height ``heights[k]``, within 2 mm of the hull."""
@@ -389,7 +394,7 @@ def _on_raster(region: np.ndarray, face: Face, x: np.ndarray, z: np.ndarray) -> 
     return on
 
 
-def _uncovered_share(inside: np.ndarray, trial: np.ndarray, hull: VoxelHull, masks, K, Ts) -> float:
+def uncovered_share(inside: np.ndarray, trial: np.ndarray, hull: VoxelHull, masks, K, Ts) -> float:
     """The largest share of a view's silhouette that carving ``inside`` down to ``trial`` leaves with no hull behind."""
     shape = masks[0].shape
     before, after = _shell_points(inside, hull), _shell_points(trial, hull)
@@ -433,7 +438,7 @@ def carve_above_faces(hull: VoxelHull, images_rgb, masks, K, Ts,
         carve = np.argwhere(inside & ~trial)
         if not len(carve):
             continue
-        if _uncovered_share(inside, trial, hull, masks, K, Ts) > GUARD_PX:
+        if uncovered_share(inside, trial, hull, masks, K, Ts) > GUARD_PX:
             continue
         # the face's plane is the surface: signed distance to it above the face (the margin kept too,
         # in the columns carved above it), unchanged below
@@ -572,7 +577,7 @@ def carve_under_slabs(hull: VoxelHull, faces: list[Face], masks, K, Ts) -> tuple
         carve = np.column_stack([np.repeat(ux, n), iy_top - k, np.repeat(uz, n)])
         trial = inside.copy()
         trial[tuple(carve.T)] = False
-        if _uncovered_share(inside, trial, hull, masks, K, Ts) > GUARD_PX:
+        if uncovered_share(inside, trial, hull, masks, K, Ts) > GUARD_PX:
             continue
         # the underside's plane is the surface: signed distance to it under the slab, and in the layer over it
         ci = tuple(carve.T)

@@ -25,8 +25,10 @@ An *opening* is such a horizontal outline that
   top with a rounded edge, which they all see alike, is not an opening). An
   evenly lit inside looks alike from every view too (the synth's cup under one
   of its lights: 0.99 of it agrees), so a wider rim is enough;
-- has nothing standing on it (the hull over it no higher than the roof the
-  rim itself leaves, and no outline inside it higher up: a knob).
+- has nothing standing on it: the hull over it no higher than the roof the
+  rim itself leaves (at ``d`` inside the rim, ``d`` times the steepest view's
+  tangent), and no outline inside it higher up (a knob) but the roof's own
+  and what is outlined as much under the rim (static shading near the axis).
 
 Under it the inside is hollowed as a vessel's: down each column of the
 opening, hull voxels farther than the wall from the hull's outside (the
@@ -47,6 +49,8 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from calib.camera import camera_centre_table
+
 from .faces import (
     AGREE_DN,
     EDGE_SHARE,
@@ -55,13 +59,10 @@ from .faces import (
     MIN_OUTLINE_MM,
     RISE_MM,
     RISE_SHARE,
-    Face,
+    ROOF_SLACK_MM,
     Sweep,
-    _plane_map,
-    _stands_high,
-    _uncovered_share,
-    _warp,
     sweep,
+    uncovered_share,
 )
 from .silhouette_doubt import channel_max
 from .types import VoxelHull
@@ -80,6 +81,8 @@ FLOOR_DROP_MM = 3.0  # a floor is outlined this far under the rim or more ...
 FLOOR_INSET_MM = 2.0  # ... inside the opening, this far from its border, ...
 RING_RADIUS = 0.5  # ... its texels a median this share of the opening's radius from its centre ...
 RING_BINS = 60  # ... and all round it, closely: in this many of the 72 sectors of 5 deg
+MAX_OVER_ROOF = 0.1  # the hull may rise over the rim's roof on this share of the region (its noise)
+ROOF_CLEAR_MM = 4.0  # a knob's outline is looked for this far inside the hull's section above the opening
 TAU_MM = 3.0  # the signed distance's band at the hollowed surface
 
 
@@ -101,11 +104,9 @@ class Opening:
 
 def _agreement(sw: Sweep, h: float, images_rgb) -> np.ndarray:
     """Per texel of the plane at ``h``: the share of the views that see it and agree with their median colour."""
-    rect = np.stack([_warp(im, _plane_map(sw.K, T, h, sw.x0, sw.z0, sw.px), sw.size)
-                     for im, T in zip(images_rgb, sw.Ts, strict=True)]).astype(np.float32)
+    rect = np.stack([sw.rectify(im, T, h) for im, T in zip(images_rgb, sw.Ts, strict=True)]).astype(np.float32)
     ones = np.ones(images_rgb[0].shape[:2], np.uint8)
-    seen = np.stack([_warp(ones, _plane_map(sw.K, T, h, sw.x0, sw.z0, sw.px), sw.size, nearest=True) > 0
-                     for T in sw.Ts])
+    seen = np.stack([sw.rectify(ones, T, h, nearest=True) > 0 for T in sw.Ts])
     rect[~seen] = np.nan
     med = np.nanmedian(rect, axis=0)
     return np.nansum(channel_max(np.abs(rect - med)) < AGREE_DN, axis=0) / np.maximum(seen.sum(0), 1)
@@ -144,12 +145,64 @@ def _rings(texels: np.ndarray, region: np.ndarray, px: float) -> bool:
     return len(bins) >= RING_BINS
 
 
+def _knob(sw: Sweep, k: int, share: float, region: np.ndarray) -> bool:
+    """Whether something inside the region outlines itself up to ``RISE_MM`` above it (a knob, a lid's dome).
+
+    Not counted: the outline along the hull's own section up there, ``ROOF_CLEAR_MM`` from its border (the roof
+    over an opening is made of the silhouettes' edges, and a soft, noisy photo's thick edges put ~10 % of the
+    opening on it at every height: the synth's cup, blur 0.5 px, noise 4), and texels outlined as much under
+    the rim (an edge that stands still in the images as the object turns, the inside's shading, is put on the
+    same texels near the axis at every height; a knob's outline is where the knob is).
+    """
+    px, step = sw.px, sw.step
+    inner = cv2.erode(region.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=max(int(px), 1)) > 0
+    if not inner.any():
+        return True
+    reach, gap = int(round(RISE_MM / step)), max(int(round(1.0 / step)), 1)
+    below = np.zeros(region.shape, bool)
+    for j in range(max(k - reach, 0), k - gap + 1):
+        below |= sw.outline(j, share)
+    look = inner & ~below
+    for j in range(k + gap, min(k + reach + 1, len(sw.heights))):
+        clear = cv2.distanceTransform(np.pad(sw.sections[j], 1).astype(np.uint8), cv2.DIST_L2, 5)[1:-1, 1:-1]
+        if (sw.outline(j, share) & look & (clear > ROOF_CLEAR_MM * px)).sum() > RISE_SHARE * inner.sum():
+            return True
+    return False
+
+
+def _over_roof(sw: Sweep, k: int, region: np.ndarray, hull: VoxelHull) -> float:
+    """The share of the region over which the hull rises higher than the roof its rim leaves.
+
+    Over an opening the hull is what the silhouettes' upper edges, the far half of the rim, leave: at a
+    distance ``d`` inside the rim no higher than ``d`` times the tangent of the steepest view (and
+    ``ROOF_SLACK_MM``). A dome steeper than the views, or anything standing on the region that the
+    silhouettes show, rises above that.
+    """
+    inside = np.asarray(hull.values) > 0
+    o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
+    h = float(sw.heights[k])
+    ii, jj = np.nonzero(region)
+    x, z = sw.x0 + jj / sw.px, sw.z0 + ii / sw.px
+    gx = np.clip(np.rint((x - o[0]) / v).astype(int), 0, inside.shape[0] - 1)
+    gz = np.clip(np.rint((z - o[2]) / v).astype(int), 0, inside.shape[2] - 1)
+    iy0 = max(int(np.ceil((h - o[1]) / v)), 0)
+    if iy0 >= inside.shape[1]:
+        return 0.0
+    cols = inside[gx, iy0:, gz]
+    run = np.where(cols.all(axis=1), cols.shape[1], np.argmin(cols, axis=1)) * v
+    d = cv2.distanceTransform(np.pad(sw.sections[k], 1).astype(np.uint8), cv2.DIST_L2, 5)[1:-1, 1:-1][ii, jj] / sw.px
+    centre = np.array([x.mean(), h, z.mean()])
+    tan_e = max(float((c[1] - h) / max(np.hypot(c[0] - centre[0], c[2] - centre[2]), 1e-6))
+                for c in (camera_centre_table(T) for T in sw.Ts))
+    return float(np.mean(run > d * max(tan_e, 0.0) + ROOF_SLACK_MM))
+
+
 def find_openings(images_rgb, masks, K, Ts, hull: VoxelHull, swept: Sweep | None = None) -> list[Opening]:
     """The openings the views' edges outline (see the module's docstring), top down."""
     sw = swept if swept is not None else sweep(images_rgb, masks, K, Ts, hull)
     if sw is None:
         return []
-    heights, step, px = sw.heights, sw.step, sw.px
+    heights, px = sw.heights, sw.px
     peaks = sw.peaks_with(RIM_PEAK)
     found: list[Opening] = []
     for k, share in reversed(peaks):
@@ -178,11 +231,9 @@ def find_openings(images_rgb, masks, K, Ts, hull: VoxelHull, swept: Sweep | None
                     agree = _agreement(sw, h, images_rgb)
                 if (agree[region] >= MIN_AGREE).mean() > MAX_AGREE:
                     continue
-            if _stands_high(Face(h, region, np.zeros(region.shape + (3,), np.float32), (sw.x0, sw.z0), px), hull, Ts):
+            if _over_roof(sw, k, region, hull) > MAX_OVER_ROOF:
                 continue
-            inner = cv2.erode(region.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=max(int(px), 1)) > 0
-            above = range(k + max(int(round(1.0 / step)), 1), min(k + int(round(RISE_MM / step)) + 1, len(heights)))
-            if not inner.any() or any((sw.outline(j, share) & inner).sum() > RISE_SHARE * inner.sum() for j in above):
+            if _knob(sw, k, share, region):
                 continue
             wall = max(rim_mm, MIN_WALL_MM)
             r = max(int(round(FLOOR_INSET_MM * px)), 1)
@@ -263,7 +314,7 @@ def hollow_openings(hull: VoxelHull, values: np.ndarray, openings: list[Opening]
         E = _inside_of(op, hull, inside, solid)
         if not E.any():
             continue
-        if _uncovered_share(inside, inside & ~E, hull, masks, K, Ts) > GUARD_PX:
+        if uncovered_share(inside, inside & ~E, hull, masks, K, Ts) > GUARD_PX:
             continue
         # a signed distance to the hollowed surface in a box round it: negative inside the hollow, and no
         # larger than the distance to it outside
