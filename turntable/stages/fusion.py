@@ -11,8 +11,11 @@ Wires :mod:`recon.stereo`, :mod:`recon.fusion`, :mod:`recon.surface` and
    did not use (:func:`recon.regions.choose_regions`); unconfirmed or
    unjudged regions keep the hull;
 4. enclosed voids filled, carved-off fragments dropped
-   (:func:`recon.regions.supported_field`), meshed like the hull, and every
-   vertex clipped back into the hull (:func:`recon.meshing.clip_to_hull`).
+   (:func:`recon.regions.supported_field`);
+5. the inside under an opening its rim outlines hollowed, where stereo did
+   not see it (:mod:`recon.openings`: a plain white cup); then meshed like
+   the hull, and every vertex clipped back into the hull
+   (:func:`recon.meshing.clip_to_hull`).
 """
 
 from __future__ import annotations
