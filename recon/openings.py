@@ -258,8 +258,12 @@ def _columns(op: Opening, hull: VoxelHull, top: np.ndarray) -> np.ndarray:
     return out
 
 
-def _inside_of(op: Opening, hull: VoxelHull, inside: np.ndarray, solid: np.ndarray | None) -> np.ndarray:
-    """The voxels hollowed under (and over) the opening: a bool grid like the hull's."""
+def _inside_of(op: Opening, hull: VoxelHull, inside: np.ndarray, solid: np.ndarray | None, tan_e: float) -> np.ndarray:
+    """The voxels hollowed under (and over) the opening: a bool grid like the hull's.
+
+    Over it only the roof the rim leaves goes (``d`` inside the rim, up to ``d`` times ``tan_e``, the steepest
+    view's tangent, and ``ROOF_SLACK_MM``): anything higher is something the silhouettes show (a handle arching
+    over it)."""
     o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
     ny = inside.shape[1]
     y = o[1] + np.arange(ny) * v
@@ -273,7 +277,8 @@ def _inside_of(op: Opening, hull: VoxelHull, inside: np.ndarray, solid: np.ndarr
     top |= cols & inside[:, jr, :]
     floor_y = np.where(inside, np.arange(ny)[None, :, None], ny).min(axis=1)  # (Nx, Nz) the hull's bottom slice
     E = np.zeros_like(inside)
-    E[:, jr + 1:, :] = inside[:, jr + 1:, :] & top[:, None, :]  # the roof over the opening
+    roof = (y[None, jr + 1:, None] - op.height_mm) <= lateral_rim[:, None, :] * max(tan_e, 0.0) + ROOF_SLACK_MM
+    E[:, jr + 1:, :] = inside[:, jr + 1:, :] & top[:, None, :] & roof  # the roof over the opening
     if solid is not None:
         E[:, jr + 1:, :] &= ~solid[:, jr + 1:, :]
     cur = top.copy()
@@ -311,7 +316,12 @@ def hollow_openings(hull: VoxelHull, values: np.ndarray, openings: list[Opening]
     done = []
     for op in openings:
         inside = vals > 0
-        E = _inside_of(op, hull, inside, solid)
+        ii, jj = np.nonzero(op.region)
+        centre = np.array([op.origin_xz[0] + jj.mean() / op.px_per_mm, op.height_mm,
+                           op.origin_xz[1] + ii.mean() / op.px_per_mm])
+        tan_e = max(float((c[1] - centre[1]) / max(np.hypot(c[0] - centre[0], c[2] - centre[2]), 1e-6))
+                    for c in (camera_centre_table(T) for T in Ts))
+        E = _inside_of(op, hull, inside, solid, tan_e)
         if not E.any():
             continue
         if uncovered_share(inside, inside & ~E, hull, masks, K, Ts) > GUARD_PX:
