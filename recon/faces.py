@@ -159,6 +159,18 @@ class Sweep:
         """``image`` (seen from ``T``) warped onto the plane ``y = h``, on the sweep's raster (0 off the image)."""
         return _warp(image, _plane_map(self.K, T, h, self.x0, self.z0, self.px), self.size, nearest=nearest)
 
+    def agreement(self, h: float, images_rgb) -> tuple[np.ndarray, np.ndarray]:
+        """The views' colours on the plane ``y = h``: per texel, the share of the views that see it and agree
+        with their median colour (within ``AGREE_DN``), and that median (0 where no view sees it)."""
+        rect = np.stack([self.rectify(im, T, h) for im, T in zip(images_rgb, self.Ts, strict=True)])
+        rect = rect.astype(np.float32)
+        ones = np.ones(images_rgb[0].shape[:2], np.uint8)
+        seen = np.stack([self.rectify(ones, T, h, nearest=True) > 0 for T in self.Ts])
+        rect[~seen] = np.nan
+        med = np.nanmedian(rect, axis=0)
+        agree = np.nansum(channel_max(np.abs(rect - med)) < AGREE_DN, axis=0) / np.maximum(seen.sum(0), 1)
+        return agree, np.nan_to_num(med)
+
     def outline(self, k: int, share: float = EDGE_SHARE) -> np.ndarray:
         """The texels where ``share`` of the views put an edge at height ``heights[k]``, within 2 mm of the hull."""
         votes = np.zeros(self.shape, np.float32)
@@ -232,9 +244,7 @@ def find_faces(images_rgb, masks, K, Ts, hull: VoxelHull, swept: Sweep | None = 
     heights, step = sw.heights, sw.step
     faces: list[Face] = []
     for k, share in sw.peaks:
-        h = float(heights[k])
-        for face in _faces_at(h, sw.outline(k, share), sw.sections[k], images_rgb, K, Ts, sw.x0, sw.z0, sw.px,
-                              sw.size):
+        for face in _faces_at(sw, k, share, images_rgb):
             # flat: nothing inside it outlines itself higher up (a lid's dome, a knob: their contours do)
             r = max(int(round(INNER_MM * sw.px)), 1)
             inner = cv2.erode(face.region.astype(np.uint8), np.ones((2 * r + 1,) * 2, np.uint8)) > 0
@@ -273,6 +283,28 @@ def _under_a_top(face: Face, faces: list[Face]) -> bool:
                for other in faces)
 
 
+def steepest_tan(Ts, centre_table) -> float:
+    """The tangent of the steepest view down onto ``centre_table`` (table mm): the highest camera's elevation
+    over it, 0 where every camera is below it."""
+    c0 = np.asarray(centre_table, float)
+    return max(0.0, max(float((c[1] - c0[1]) / max(np.hypot(c[0] - c0[0], c[2] - c0[2]), 1e-6))
+                        for c in (camera_centre_table(T) for T in Ts)))
+
+
+def column_run_mm(hull: VoxelHull, x: np.ndarray, z: np.ndarray, h: float) -> np.ndarray | None:
+    """How high the hull rises without a break from height ``h`` in the columns over ``(x, z)`` (table mm;
+    None where ``h`` is above the grid)."""
+    inside = np.asarray(hull.values) > 0
+    o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
+    gx = np.clip(np.rint((x - o[0]) / v).astype(int), 0, inside.shape[0] - 1)
+    gz = np.clip(np.rint((z - o[2]) / v).astype(int), 0, inside.shape[2] - 1)
+    iy0 = max(int(np.ceil((h - o[1]) / v)), 0)
+    if iy0 >= inside.shape[1]:
+        return None
+    cols = inside[gx, iy0:, gz]  # (N, ny) the hull up each column from h
+    return np.where(cols.all(axis=1), cols.shape[1], np.argmin(cols, axis=1)) * v
+
+
 def _stands_high(face: Face, hull: VoxelHull, Ts) -> bool:
     """Whether the hull over most of the face rises higher than any roof over a top of its size could.
 
@@ -280,45 +312,33 @@ def _stands_high(face: Face, hull: VoxelHull, Ts) -> bool:
     it; a region found inside a body (a torso's section, whose contour happened to be outlined at one
     height) has the body standing on it.
     """
-    inside = np.asarray(hull.values) > 0
-    o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
     ii, jj = np.nonzero(face.region)
     x = face.origin_xz[0] + jj / face.px_per_mm
     z = face.origin_xz[1] + ii / face.px_per_mm
-    gx = np.clip(np.rint((x - o[0]) / v).astype(int), 0, inside.shape[0] - 1)
-    gz = np.clip(np.rint((z - o[2]) / v).astype(int), 0, inside.shape[2] - 1)
-    iy0 = max(int(np.ceil((face.height_mm - o[1]) / v)), 0)
-    if iy0 >= inside.shape[1]:
+    run = column_run_mm(hull, x, z, face.height_mm)
+    if run is None:
         return False
-    cols = inside[gx, iy0:, gz]  # (N, ny) the hull up each column from the face
-    run = np.where(cols.all(axis=1), cols.shape[1], np.argmin(cols, axis=1)) * v
-    centre = np.array([x.mean(), face.height_mm, z.mean()])
-    tan_e = max(float((c[1] - centre[1]) / max(np.hypot(c[0] - centre[0], c[2] - centre[2]), 1e-6))
-                for c in (camera_centre_table(T) for T in Ts))
+    tan_e = steepest_tan(Ts, (x.mean(), face.height_mm, z.mean()))
     width = float(np.hypot(x.max() - x.min(), z.max() - z.min()))
-    return float(np.median(run)) > width * max(tan_e, 0.0) + ROOF_SLACK_MM
+    return float(np.median(run)) > width * tan_e + ROOF_SLACK_MM
 
 
-def _faces_at(h, outline, section, images_rgb, K, Ts, x0, z0, px, size) -> list[Face]:
-    """The regions the outline at height ``h`` encloses in the hull's section, where the views agree on a colour.
+def _faces_at(sw: Sweep, k: int, share: float, images_rgb) -> list[Face]:
+    """The regions the outline at ``heights[k]`` encloses in the hull's section, where the views agree on a
+    colour.
 
     Where the outline has a gap (a white top's edge against white paper shows no step) the hull's section
     closes it: no face reaches out of the hull.
     """
-    wall = cv2.dilate(outline.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    wall |= ~section
+    h, px = float(sw.heights[k]), sw.px
+    wall = cv2.dilate(sw.outline(k, share).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    wall |= ~sw.sections[k]
     n, lab = cv2.connectedComponents((~wall).astype(np.uint8), connectivity=4)
     border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
     big = [c for c in range(1, n) if c not in border and (lab == c).sum() >= MIN_FACE_MM2 * px ** 2]
     if not big:  # nothing enclosed that could be a face: no need to warp every view's colours
         return []
-    rect = np.stack([_warp(im, _plane_map(K, T, h, x0, z0, px), size) for im, T in zip(images_rgb, Ts, strict=True)])
-    ones = np.ones(images_rgb[0].shape[:2], np.uint8)
-    seen = np.stack([_warp(ones, _plane_map(K, T, h, x0, z0, px), size, nearest=True) > 0 for T in Ts])
-    rectf = rect.astype(np.float32)
-    rectf[~seen] = np.nan
-    med = np.nanmedian(rectf, axis=0)
-    agree = np.nansum(channel_max(np.abs(rectf - med)) < AGREE_DN, axis=0) / np.maximum(seen.sum(0), 1)
+    agree, med = sw.agreement(h, images_rgb)
     out = []
     for c in big:
         region = lab == c
@@ -329,11 +349,11 @@ def _faces_at(h, outline, section, images_rgb, K, Ts, x0, z0, px, size) -> list[
             continue
         # one colour all over: a flat top's normal turns with the table about itself, so under a light
         # fixed to the camera every view sees it equally lit; a dome's shading runs across it
-        grey = np.nan_to_num(med).mean(axis=-1)[region]
+        grey = med.mean(axis=-1)[region]
         lo, hi = np.percentile(grey, [5.0, 95.0])
         if hi - lo > FLAT_SPREAD_DN:
             continue
-        out.append(Face(h, region, np.nan_to_num(med).astype(np.float32), (x0, z0), px))
+        out.append(Face(h, region, med.astype(np.float32), (sw.x0, sw.z0), px))
     return out
 
 

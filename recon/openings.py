@@ -49,10 +49,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from calib.camera import camera_centre_table
-
 from .faces import (
-    AGREE_DN,
     EDGE_SHARE,
     GUARD_PX,
     MIN_AGREE,
@@ -61,10 +58,12 @@ from .faces import (
     RISE_SHARE,
     ROOF_SLACK_MM,
     Sweep,
+    column_run_mm,
+    steepest_tan,
     sweep,
     uncovered_share,
 )
-from .silhouette_doubt import channel_max
+from .surface import lateral_mm
 from .types import VoxelHull
 
 __all__ = ["Opening", "find_openings", "hollow_openings"]
@@ -100,16 +99,6 @@ class Opening:
     @property
     def area_mm2(self) -> float:
         return float(self.region.sum()) / self.px_per_mm ** 2
-
-
-def _agreement(sw: Sweep, h: float, images_rgb) -> np.ndarray:
-    """Per texel of the plane at ``h``: the share of the views that see it and agree with their median colour."""
-    rect = np.stack([sw.rectify(im, T, h) for im, T in zip(images_rgb, sw.Ts, strict=True)]).astype(np.float32)
-    ones = np.ones(images_rgb[0].shape[:2], np.uint8)
-    seen = np.stack([sw.rectify(ones, T, h, nearest=True) > 0 for T in sw.Ts])
-    rect[~seen] = np.nan
-    med = np.nanmedian(rect, axis=0)
-    return np.nansum(channel_max(np.abs(rect - med)) < AGREE_DN, axis=0) / np.maximum(seen.sum(0), 1)
 
 
 def _rim_mm(region: np.ndarray, section: np.ndarray, band: np.ndarray, px: float) -> float:
@@ -178,23 +167,15 @@ def _over_roof(sw: Sweep, k: int, region: np.ndarray, hull: VoxelHull) -> float:
     ``ROOF_SLACK_MM``). A dome steeper than the views, or anything standing on the region that the
     silhouettes show, rises above that.
     """
-    inside = np.asarray(hull.values) > 0
-    o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
     h = float(sw.heights[k])
     ii, jj = np.nonzero(region)
     x, z = sw.x0 + jj / sw.px, sw.z0 + ii / sw.px
-    gx = np.clip(np.rint((x - o[0]) / v).astype(int), 0, inside.shape[0] - 1)
-    gz = np.clip(np.rint((z - o[2]) / v).astype(int), 0, inside.shape[2] - 1)
-    iy0 = max(int(np.ceil((h - o[1]) / v)), 0)
-    if iy0 >= inside.shape[1]:
+    run = column_run_mm(hull, x, z, h)
+    if run is None:
         return 0.0
-    cols = inside[gx, iy0:, gz]
-    run = np.where(cols.all(axis=1), cols.shape[1], np.argmin(cols, axis=1)) * v
     d = cv2.distanceTransform(np.pad(sw.sections[k], 1).astype(np.uint8), cv2.DIST_L2, 5)[1:-1, 1:-1][ii, jj] / sw.px
-    centre = np.array([x.mean(), h, z.mean()])
-    tan_e = max(float((c[1] - h) / max(np.hypot(c[0] - centre[0], c[2] - centre[2]), 1e-6))
-                for c in (camera_centre_table(T) for T in sw.Ts))
-    return float(np.mean(run > d * max(tan_e, 0.0) + ROOF_SLACK_MM))
+    tan_e = steepest_tan(sw.Ts, (x.mean(), h, z.mean()))
+    return float(np.mean(run > d * tan_e + ROOF_SLACK_MM))
 
 
 def find_openings(images_rgb, masks, K, Ts, hull: VoxelHull, swept: Sweep | None = None) -> list[Opening]:
@@ -228,7 +209,7 @@ def find_openings(images_rgb, masks, K, Ts, hull: VoxelHull, swept: Sweep | None
                 continue
             if rim_mm < SURE_RIM_MM:  # a narrow rim, or a top's rounded edge: the inside must look like one
                 if agree is None:
-                    agree = _agreement(sw, h, images_rgb)
+                    agree = sw.agreement(h, images_rgb)[0]
                 if (agree[region] >= MIN_AGREE).mean() > MAX_AGREE:
                     continue
             if _over_roof(sw, k, region, hull) > MAX_OVER_ROOF:
@@ -270,20 +251,20 @@ def _inside_of(op: Opening, hull: VoxelHull, inside: np.ndarray, solid: np.ndarr
     jr = min(max(int(np.floor((op.height_mm - o[1]) / v)), 0), ny - 1)  # the rim's slice
     # the cavity's top: the rim's slice of the hull farther than the wall from its outside, where it meets the
     # opening (the outline's band eats into the opening's border)
-    lateral_rim = ndimage.distance_transform_edt(np.pad(inside[:, jr, :], 1))[1:-1, 1:-1] * v
+    lateral_rim = lateral_mm(inside[:, jr, :], v)
     cols = _columns(op, hull, op.region)
     lab, _ = ndimage.label(lateral_rim > op.wall_mm)
     top = np.isin(lab, np.unique(lab[cols & (lab > 0)])) & (lab > 0)
     top |= cols & inside[:, jr, :]
     floor_y = np.where(inside, np.arange(ny)[None, :, None], ny).min(axis=1)  # (Nx, Nz) the hull's bottom slice
     E = np.zeros_like(inside)
-    roof = (y[None, jr + 1:, None] - op.height_mm) <= lateral_rim[:, None, :] * max(tan_e, 0.0) + ROOF_SLACK_MM
+    roof = (y[None, jr + 1:, None] - op.height_mm) <= lateral_rim[:, None, :] * tan_e + ROOF_SLACK_MM
     E[:, jr + 1:, :] = inside[:, jr + 1:, :] & top[:, None, :] & roof  # the roof over the opening
     if solid is not None:
         E[:, jr + 1:, :] &= ~solid[:, jr + 1:, :]
     cur = top.copy()
     for j in range(jr, -1, -1):
-        lateral = ndimage.distance_transform_edt(np.pad(inside[:, j, :], 1))[1:-1, 1:-1] * v
+        lateral = lateral_mm(inside[:, j, :], v)
         ok = inside[:, j, :] & (lateral > op.wall_mm) & ((j - floor_y + 0.5) * v > op.wall_mm)
         if op.floor_mm is not None:
             ok &= y[j] > op.floor_mm
@@ -317,10 +298,8 @@ def hollow_openings(hull: VoxelHull, values: np.ndarray, openings: list[Opening]
     for op in openings:
         inside = vals > 0
         ii, jj = np.nonzero(op.region)
-        centre = np.array([op.origin_xz[0] + jj.mean() / op.px_per_mm, op.height_mm,
-                           op.origin_xz[1] + ii.mean() / op.px_per_mm])
-        tan_e = max(float((c[1] - centre[1]) / max(np.hypot(c[0] - centre[0], c[2] - centre[2]), 1e-6))
-                    for c in (camera_centre_table(T) for T in Ts))
+        tan_e = steepest_tan(Ts, (op.origin_xz[0] + jj.mean() / op.px_per_mm, op.height_mm,
+                                  op.origin_xz[1] + ii.mean() / op.px_per_mm))
         E = _inside_of(op, hull, inside, solid, tan_e)
         if not E.any():
             continue

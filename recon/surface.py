@@ -158,6 +158,12 @@ def _agreeing(zbuf: np.ndarray, dm: DepthMap, stride: int, min_confidence: float
     return np.where((own > 0) & (np.abs(zbuf - own) <= agree_mm), zbuf, 0.0).astype(np.float32)
 
 
+def lateral_mm(inside_slice: np.ndarray, voxel_mm: float) -> np.ndarray:
+    """Per voxel of one horizontal slice (axes x, z) of a grid: its distance to the slice's outside, mm (the
+    grid's edge counts as outside)."""
+    return ndimage.distance_transform_edt(np.pad(inside_slice, 1))[1:-1, 1:-1] * voxel_mm
+
+
 def _unseen_cavity(h: np.ndarray, D: np.ndarray, C: np.ndarray, down: np.ndarray, voxel_mm: float,
                    min_area_mm2: float, min_views: int, min_opening_mm: float) -> np.ndarray:
     """Unobserved hull voxels under an observed opening: a cavity no camera could look into.
@@ -229,8 +235,7 @@ def _unseen_cavity(h: np.ndarray, D: np.ndarray, C: np.ndarray, down: np.ndarray
     if not seed.any():
         return E
     # lateral distance to the hull's outside, slice by slice (the grid edge counts as outside)
-    lateral = np.stack([ndimage.distance_transform_edt(np.pad(inside[:, j, :], 1))[1:-1, 1:-1]
-                        for j in range(ny)], axis=1) * voxel_mm
+    lateral = np.stack([lateral_mm(inside[:, j, :], voxel_mm) for j in range(ny)], axis=1)
     t = float(np.percentile(lateral[seed], 2))
     # height above the hull's floor in each column
     j_idx = np.arange(ny)[None, :, None]
