@@ -196,10 +196,10 @@ class Sweep:
         """
         return self.peaks_with(PEAK)
 
-    def peaks_with(self, ratio: float) -> list[tuple[int, float]]:
-        """:attr:`peaks` where a peak has ``ratio`` times the outline texels of ``PEAK_OFFSET_MM`` above and below."""
+    def peaks_with(self, ratio: float, offset_mm: float = PEAK_OFFSET_MM) -> list[tuple[int, float]]:
+        """:attr:`peaks` where a peak has ``ratio`` times the outline texels of ``offset_mm`` above and below."""
         heights, step = self.heights, self.step
-        off = max(int(round(PEAK_OFFSET_MM / step)), 1)
+        off = max(int(round(offset_mm / step)), 1)
 
         def peak(k: int, score: np.ndarray) -> bool:
             return bool(score[k] >= MIN_OUTLINE_MM * self.px and score[k] >= score[max(k - 2, 0):k + 3].max()

@@ -25,6 +25,10 @@ An *opening* is such a horizontal outline that
   top with a rounded edge, which they all see alike, is not an opening). An
   evenly lit inside looks alike from every view too (the synth's cup under one
   of its lights: 0.99 of it agrees), so a wider rim is enough;
+- is not on the roof over another opening: a little lower the hull's section
+  reaches out past it no more than a vessel's wall does, not as far as a
+  roof sloped as the views (a soft photo's thick silhouette edges enclose
+  a region in the roof's section at every height);
 - has nothing standing on it: the hull over it no higher than the roof the
   rim itself leaves (at ``d`` inside the rim, ``d`` times the steepest view's
   tangent), and no outline inside it higher up (a knob) but the roof's own
@@ -70,6 +74,7 @@ __all__ = ["Opening", "find_openings", "hollow_openings"]
 
 RIM_PEAK = 1.5  # a rim's outline peaks less sharply than a flat top's edge: a rounded rim spans its thickness
 MIN_OPENING_MM2 = 100.0  # an opening's least area (a pen holder 12 mm across)
+RIM_WIDE_OFFSET_MM = 3.0  # ... and, blurred, peaks against the outline this far above and below
 CLOSED_SHARE = 0.9  # this share of the region's border lies on the outline itself
 MAX_AGREE = 0.3  # the views agree on a colour over at most this share of it (more: a flat top's)
 BAND_MM = 2.0  # the outline's band reaches this far past an edge (the hull's section's, at most)
@@ -80,6 +85,7 @@ FLOOR_DROP_MM = 3.0  # a floor is outlined this far under the rim or more ...
 FLOOR_INSET_MM = 2.0  # ... inside the opening, this far from its border, ...
 RING_RADIUS = 0.5  # ... its texels a median this share of the opening's radius from its centre ...
 RING_BINS = 60  # ... and all round it, closely: in this many of the 72 sectors of 5 deg
+WALL_DROP_MM = 2.0  # under a rim the hull's section reaches out past the rim's by less than half a roof's over this
 MAX_OVER_ROOF = 0.1  # the hull may rise over the rim's roof on this share of the region (its noise)
 ROOF_CLEAR_MM = 4.0  # a knob's outline is looked for this far inside the hull's section above the opening
 TAU_MM = 3.0  # the signed distance's band at the hollowed surface
@@ -159,13 +165,37 @@ def _knob(sw: Sweep, k: int, share: float, region: np.ndarray) -> bool:
     return False
 
 
-def _over_roof(sw: Sweep, k: int, region: np.ndarray, hull: VoxelHull) -> float:
+def _on_a_roof(sw: Sweep, k: int, region: np.ndarray, rim_mm: float, tan_e: float) -> bool:
+    """Whether the hull's section at ``heights[k]`` is a roof's round the region: ``WALL_DROP_MM`` lower it
+    reaches out past it by half what a roof would or more.
+
+    The hull over an opening is the roof its rim leaves, sloped as the steepest view (its section shrinks by
+    ``dh / tan_e`` over ``dh`` of height), and its section's border is on the silhouettes' edges, outlined at every
+    height: a soft photo's thick edges enclose a region in it (the synth's dark-room cup, blur 0.5 px, noise 4:
+    at 76 mm, 8 mm over its rim; the roof's section grows 5.9 mm over 2 mm). Under a rim is the vessel's wall,
+    whose section grows no more than the vessel widens (the synth's cups: 0 mm).
+    """
+    j = k - max(int(round(WALL_DROP_MM / sw.step)), 1)
+    if j < 0:
+        return False
+    sec, lower = sw.sections[k], sw.sections[j]
+    roof = WALL_DROP_MM / max(tan_e, 1e-3)
+    # the lower section's border near the region: within the rim and the roof's reach of it
+    near = cv2.distanceTransform((~region).astype(np.uint8), cv2.DIST_L2, 5) / sw.px <= rim_mm + roof + 2.0
+    border = lower & ~(cv2.erode(lower.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0) & near
+    if not border.any():
+        return False
+    past = cv2.distanceTransform((~sec).astype(np.uint8), cv2.DIST_L2, 5) / sw.px
+    return float(np.median(past[border])) >= 0.5 * roof
+
+
+def _over_roof(sw: Sweep, k: int, region: np.ndarray, hull: VoxelHull, tan_e: float) -> float:
     """The share of the region over which the hull rises higher than the roof its rim leaves.
 
     Over an opening the hull is what the silhouettes' upper edges, the far half of the rim, leave: at a
-    distance ``d`` inside the rim no higher than ``d`` times the tangent of the steepest view (and
-    ``ROOF_SLACK_MM``). A dome steeper than the views, or anything standing on the region that the
-    silhouettes show, rises above that.
+    distance ``d`` inside the rim no higher than ``d`` times ``tan_e``, the tangent of the steepest view onto
+    the region (and ``ROOF_SLACK_MM``). A dome steeper than the views, or anything standing on the region
+    that the silhouettes show, rises above that.
     """
     h = float(sw.heights[k])
     ii, jj = np.nonzero(region)
@@ -174,8 +204,15 @@ def _over_roof(sw: Sweep, k: int, region: np.ndarray, hull: VoxelHull) -> float:
     if run is None:
         return 0.0
     d = cv2.distanceTransform(np.pad(sw.sections[k], 1).astype(np.uint8), cv2.DIST_L2, 5)[1:-1, 1:-1][ii, jj] / sw.px
-    tan_e = steepest_tan(sw.Ts, (x.mean(), h, z.mean()))
     return float(np.mean(run > d * tan_e + ROOF_SLACK_MM))
+
+
+def rim_peaks(sw: Sweep) -> list[tuple[int, float]]:
+    """``(k, share)``, bottom up, where a rim's outline may peak: :meth:`Sweep.peaks_with` at ``RIM_PEAK``,
+    against the outline ``PEAK_OFFSET_MM`` or ``RIM_WIDE_OFFSET_MM`` away (a soft, noisy photo spreads a rim's
+    outline over ~4 mm of height: the synth's cup, blur 0.5 px, noise 4, light wall)."""
+    wide = dict(sw.peaks_with(RIM_PEAK, RIM_WIDE_OFFSET_MM))
+    return sorted({**wide, **dict(sw.peaks_with(RIM_PEAK))}.items())
 
 
 def find_openings(images_rgb, masks, K, Ts, hull: VoxelHull, swept: Sweep | None = None) -> list[Opening]:
@@ -184,7 +221,7 @@ def find_openings(images_rgb, masks, K, Ts, hull: VoxelHull, swept: Sweep | None
     if sw is None:
         return []
     heights, px = sw.heights, sw.px
-    peaks = sw.peaks_with(RIM_PEAK)
+    peaks = rim_peaks(sw)
     found: list[Opening] = []
     for k, share in reversed(peaks):
         h = float(heights[k])
@@ -212,7 +249,11 @@ def find_openings(images_rgb, masks, K, Ts, hull: VoxelHull, swept: Sweep | None
                     agree = sw.agreement(h, images_rgb)[0]
                 if (agree[region] >= MIN_AGREE).mean() > MAX_AGREE:
                     continue
-            if _over_roof(sw, k, region, hull) > MAX_OVER_ROOF:
+            ii, jj = np.nonzero(region)
+            tan_e = steepest_tan(sw.Ts, (sw.x0 + jj.mean() / px, h, sw.z0 + ii.mean() / px))
+            if _on_a_roof(sw, k, region, rim_mm, tan_e):
+                continue
+            if _over_roof(sw, k, region, hull, tan_e) > MAX_OVER_ROOF:
                 continue
             if _knob(sw, k, share, region):
                 continue

@@ -169,3 +169,48 @@ def test_the_fusion_stage_hollows_a_plain_cup_that_stereo_cannot_see(cup_scene):
     assert st.watertight and st.n_bodies == 1
     assert 0.85 * truth.volume < st.volume_mm3 < 1.15 * truth.volume
     assert _chamfer_mm(mesh, truth) < 0.4 * _chamfer_mm(hull_mesh, truth)
+
+
+def _sweep(sections, heights, px=3.0):
+    """A :class:`recon.faces.Sweep` with given sections (nothing rectified from it)."""
+    from recon.faces import Sweep
+
+    shape = sections[0].shape
+    return Sweep(np.asarray(heights, float), float(heights[1] - heights[0]), list(sections), [], K,
+                 np.zeros((0, 4, 4)), 0.0, 0.0, px, shape)
+
+
+def test_a_soft_rims_outline_spread_over_4_mm_of_height_still_peaks():
+    from recon.faces import EDGE_SHARE, SOFT_EDGE_SHARE
+    from recon.openings import RIM_PEAK, rim_peaks
+
+    heights = np.arange(60.0, 84.0, 0.5)
+    # the strict share's outline texels over the synth's cup, blur 0.5 px, noise 4, light wall (auto silhouettes):
+    # a plateau from 67 to 70 mm over the rim at 68
+    strict = [2300, 2310, 2320, 2330, 2340, 2350, 2360, 2380, 2524, 2635, 2649, 2689, 2754, 4627, 8843, 10197, 11756,
+              11417, 10761, 9826, 7942, 3425, 2115, 2067, 1896, 1635, 1347, 1100, 863, 767, 711, 764, 830, 735, 790,
+              933, 961, 833, 902, 1070, 1124, 1010, 942, 1202, 955, 488, 217, 0]
+    assert len(strict) == len(heights)
+    sw = _sweep([np.zeros((4, 4), bool)] * len(heights), heights)
+    sw.__dict__["scores"] = {EDGE_SHARE: np.array(strict), SOFT_EDGE_SHARE: np.array(strict) * 2}
+    k68 = int(np.argmin(np.abs(heights - 68.0)))
+    assert k68 not in dict(sw.peaks_with(RIM_PEAK))  # 2 mm off, the plateau's shoulder is too high
+    assert dict(rim_peaks(sw)).get(k68) == EDGE_SHARE
+
+
+def test_a_region_in_the_roofs_section_over_a_rim_is_on_a_roof():
+    from recon.openings import _on_a_roof
+
+    px, tan_e = 3.0, 0.4
+    heights = np.arange(60.0, 84.0, 0.5)
+    jj, ii = np.meshgrid(np.arange(241), np.arange(241))
+    r_mm = np.hypot(ii - 120, jj - 120) / px
+    # a cup's wall up to its rim at 68 mm, 35 mm round; over it the roof the views leave, sloped as the steepest
+    sections = [r_mm <= (35.0 if h <= 68.0 else 35.0 - (h - 68.0) / tan_e) for h in heights]
+    sw = _sweep(sections, heights, px)
+    k_rim, k_roof = (int(np.argmin(np.abs(heights - h))) for h in (68.0, 76.0))
+    assert not _on_a_roof(sw, k_rim, r_mm <= 32.0, 3.0, tan_e)
+    assert _on_a_roof(sw, k_roof, r_mm <= 13.0, 2.0, tan_e)
+    # a bowl flaring out to its rim is no roof either
+    bowl = _sweep([r_mm <= 20.0 + 0.2 * (h - 60.0) for h in heights], heights, px)
+    assert not _on_a_roof(bowl, k_rim, r_mm <= 18.0, 3.0, tan_e)
