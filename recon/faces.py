@@ -196,8 +196,10 @@ class Sweep:
         """
         return self.peaks_with(PEAK)
 
-    def peaks_with(self, ratio: float, offset_mm: float = PEAK_OFFSET_MM) -> list[tuple[int, float]]:
-        """:attr:`peaks` where a peak has ``ratio`` times the outline texels of ``offset_mm`` above and below."""
+    def peaks_with(self, ratio: float, offset_mm: float = PEAK_OFFSET_MM,
+                   every: bool = False) -> list[tuple[int, float]]:
+        """:attr:`peaks` where a peak has ``ratio`` times the outline texels of ``offset_mm`` above and below
+        (``every``: each share that peaks at a height, the strict one first; else only the first)."""
         heights, step = self.heights, self.step
         off = max(int(round(offset_mm / step)), 1)
 
@@ -205,11 +207,12 @@ class Sweep:
             return bool(score[k] >= MIN_OUTLINE_MM * self.px and score[k] >= score[max(k - 2, 0):k + 3].max()
                         and score[k] >= ratio * max(score[k - off], score[k + off]))
 
-        out = []
+        out: list[tuple[int, float]] = []
         for k in range(off, len(heights) - off):
-            share = next((s for s, score in self.scores.items() if peak(k, score)), None)
-            if float(heights[k]) >= MIN_HEIGHT_MM and share is not None:
-                out.append((k, share))
+            if float(heights[k]) < MIN_HEIGHT_MM:
+                continue
+            shares = [s for s, score in self.scores.items() if peak(k, score)]
+            out.extend((k, s) for s in (shares if every else shares[:1]))
         return out
 
 

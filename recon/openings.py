@@ -24,7 +24,8 @@ An *opening* is such a horizontal outline that
   agree on a colour (each sees another part of the inside through it; a flat
   top with a rounded edge, which they all see alike, is not an opening). An
   evenly lit inside looks alike from every view too (the synth's cup under one
-  of its lights: 0.99 of it agrees), so a wider rim is enough;
+  of its lights: 0.99 of it agrees), so a wider rim is enough; from
+  ``WIDE_RIM_MM`` the views need only not agree all over, as on a flat top;
 - is not on the roof over another opening: a little lower the hull's section
   reaches out past it no more than a vessel's wall does, not as far as a
   roof sloped as the views (a soft photo's thick silhouette edges enclose
@@ -79,7 +80,9 @@ CLOSED_SHARE = 0.9  # this share of the region's border lies on the outline itse
 MAX_AGREE = 0.3  # the views agree on a colour over at most this share of it (more: a flat top's)
 BAND_MM = 2.0  # the outline's band reaches this far past an edge (the hull's section's, at most)
 MIN_RIM_MM = 1.0  # a rim this wide at least: two edges, the wall's inner and outer, not a top's one ...
-SURE_RIM_MM = 3.0  # ... and from this wide the views need not disagree inside it (an evenly lit inside)
+SURE_RIM_MM = 3.0  # ... and from this wide the views need not disagree inside it (an evenly lit inside) ...
+WIDE_RIM_MM = 2.5  # ... from this wide they need only not agree as on a flat top
+WIDE_MAX_AGREE = 0.9  # ... (flat tops: 0.99-1.00 of their texels agree; the synth's cup at seed 8, rim 2.9 mm: 0.75)
 MIN_WALL_MM = 1.5  # the thinnest wall left
 FLOOR_DROP_MM = 3.0  # a floor is outlined this far under the rim or more ...
 FLOOR_INSET_MM = 2.0  # ... inside the opening, this far from its border, ...
@@ -210,9 +213,11 @@ def _over_roof(sw: Sweep, k: int, region: np.ndarray, hull: VoxelHull, tan_e: fl
 def rim_peaks(sw: Sweep) -> list[tuple[int, float]]:
     """``(k, share)``, bottom up, where a rim's outline may peak: :meth:`Sweep.peaks_with` at ``RIM_PEAK``,
     against the outline ``PEAK_OFFSET_MM`` or ``RIM_WIDE_OFFSET_MM`` away (a soft, noisy photo spreads a rim's
-    outline over ~4 mm of height: the synth's cup, blur 0.5 px, noise 4, light wall)."""
-    wide = dict(sw.peaks_with(RIM_PEAK, RIM_WIDE_OFFSET_MM))
-    return sorted({**wide, **dict(sw.peaks_with(RIM_PEAK))}.items())
+    outline over ~4 mm of height: the synth's cup, blur 0.5 px, noise 4, light wall), for each edge share that
+    peaks there (the strict share's outline may peak but not close: the synth's cup on a light wall, seed 8,
+    where the loose share's closes the rim all round)."""
+    found = set(sw.peaks_with(RIM_PEAK, every=True)) | set(sw.peaks_with(RIM_PEAK, RIM_WIDE_OFFSET_MM, every=True))
+    return sorted(found)  # at a height the loose share's first: find_openings, top down, tries the strict one first
 
 
 def find_openings(images_rgb, masks, K, Ts, hull: VoxelHull, swept: Sweep | None = None) -> list[Opening]:
@@ -247,7 +252,7 @@ def find_openings(images_rgb, masks, K, Ts, hull: VoxelHull, swept: Sweep | None
             if rim_mm < SURE_RIM_MM:  # a narrow rim, or a top's rounded edge: the inside must look like one
                 if agree is None:
                     agree = sw.agreement(h, images_rgb)[0]
-                if (agree[region] >= MIN_AGREE).mean() > MAX_AGREE:
+                if (agree[region] >= MIN_AGREE).mean() > (WIDE_MAX_AGREE if rim_mm >= WIDE_RIM_MM else MAX_AGREE):
                     continue
             ii, jj = np.nonzero(region)
             tan_e = steepest_tan(sw.Ts, (sw.x0 + jj.mean() / px, h, sw.z0 + ii.mean() / px))

@@ -195,7 +195,10 @@ def test_a_soft_rims_outline_spread_over_4_mm_of_height_still_peaks():
     sw.__dict__["scores"] = {EDGE_SHARE: np.array(strict), SOFT_EDGE_SHARE: np.array(strict) * 2}
     k68 = int(np.argmin(np.abs(heights - 68.0)))
     assert k68 not in dict(sw.peaks_with(RIM_PEAK))  # 2 mm off, the plateau's shoulder is too high
-    assert dict(rim_peaks(sw)).get(k68) == EDGE_SHARE
+    assert (k68, EDGE_SHARE) in rim_peaks(sw)
+    # where both shares peak, both are tried (the strict share's outline may not close the rim all round)
+    assert (k68, SOFT_EDGE_SHARE) in rim_peaks(sw)
+    assert [s for k, s in sw.peaks_with(RIM_PEAK, 3.0) if k == k68] == [EDGE_SHARE]
 
 
 def test_a_region_in_the_roofs_section_over_a_rim_is_on_a_roof():
