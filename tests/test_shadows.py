@@ -228,6 +228,17 @@ def _seat_hull():
     return inside
 
 
+def _seat_skirt_carved():
+    """:func:`_seat_hull` and its values with the skirt carved but not the posts."""
+    inside = _seat_hull()
+    new = np.where(inside, 1.0, -1.0).astype(np.float32)
+    new[3:27, 1:16, 3:27] = -0.5
+    for x in (2, 25):
+        for z in (2, 25):
+            new[x:x + 3, 1:30, z:z + 3] = 1.0
+    return inside, new
+
+
 def test_the_rest_of_a_skirt_under_the_seat_is_dropped_a_block_in_the_open_or_a_bar_is_not():
     """The carving took a stool's skirt but its core under the seat's centre (in a darker shade than the shadow's,
     which nothing releases): cut loose, resting on the table under the seat, it is the skirt's rest and goes. A
@@ -236,13 +247,8 @@ def test_the_rest_of_a_skirt_under_the_seat_is_dropped_a_block_in_the_open_or_a_
     which refuses it too)."""
     from recon.shadows import drop_cut_pieces
 
-    inside = _seat_hull()
-    new = np.where(inside, 1.0, -1.0).astype(np.float32)
-    new[3:27, 1:16, 3:27] = -0.5  # the skirt carved ...
-    for x in (2, 25):
-        for z in (2, 25):
-            new[x:x + 3, 1:30, z:z + 3] = 1.0  # ... not the posts
-    new[11:19, 1:14, 11:19] = 1.0  # ... nor its core: 832 voxels, far over SMALL_PIECE of the stool
+    inside, new = _seat_skirt_carved()
+    new[11:19, 1:14, 11:19] = 1.0  # not its core: 832 voxels, far over SMALL_PIECE of the stool
     none = np.zeros_like(inside)
     out = drop_cut_pieces(new, inside, none, 1.0)
     assert out is not None
@@ -309,13 +315,8 @@ def test_the_skirts_rest_floating_under_the_seat_goes_where_no_silhouette_needs_
     bar between the legs)."""
     from recon.shadows import drop_cut_pieces
 
-    inside = _seat_hull()
-    new = np.where(inside, 1.0, -1.0).astype(np.float32)
-    new[3:27, 1:16, 3:27] = -0.5  # the skirt carved ...
-    for x in (2, 25):
-        for z in (2, 25):
-            new[x:x + 3, 1:30, z:z + 3] = 1.0  # ... not the posts
-    new[11:19, 8:14, 11:19] = 1.0  # ... nor its core's upper part: floating under the seat
+    inside, new = _seat_skirt_carved()
+    new[11:19, 8:14, 11:19] = 1.0  # not its core's upper part: floating under the seat
     none = np.zeros_like(inside)
     asked = []
 
