@@ -135,15 +135,9 @@ _RAMP_RESIDUAL = 0.5  # ... a plane fits the window's colours within this share 
 _RAMP_RISE = 2.0  # ... and rises across it by at least this many tau
 
 
-def shading_ramp(img: np.ndarray, tau: float) -> np.ndarray:
-    """(h, w) bool: where a tilted plane in x, y fits ``img`` over a 9 x 9 window: within ``tau / 2`` RMS in each
-    channel, rising by ``2 tau`` or more across the window in one of them.
-
-    A lit curved surface shades smoothly (the ramp of a sphere's grey from its
-    lit cap to its shaded side); a texture (wood grain, clutter) or a step (an
-    outline, the horizon) leaves a residual the size of its contrast, and a
-    plain wall has no rise.
-    """
+def _plane_fit(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A tilted plane in x, y fitted to each channel of ``img`` (h, w, C) over a 9 x 9 window: the worst
+    channel's residual variance and the largest rise across the window, (h, w) float32 each."""
     k = _RAMP_WIN
     r = np.arange(k, dtype=np.float32) - (k - 1) / 2
     kx = np.tile(r, (k, 1)) / (k * k)
@@ -159,7 +153,26 @@ def shading_ramp(img: np.ndarray, tau: float) -> np.ndarray:
         gy = cv2.filter2D(ch, -1, kx.T, borderType=cv2.BORDER_REFLECT) / sxx
         worst = np.maximum(worst, sq - mean * mean - (gx * gx + gy * gy) * sxx)
         rise = np.maximum(rise, np.hypot(gx, gy) * (k - 1))
+    return worst, rise
+
+
+def shading_ramp(img: np.ndarray, tau: float) -> np.ndarray:
+    """(h, w) bool: where a tilted plane in x, y fits ``img`` over a 9 x 9 window: within ``tau / 2`` RMS in each
+    channel, rising by ``2 tau`` or more across the window in one of them.
+
+    A lit curved surface shades smoothly (the ramp of a sphere's grey from its
+    lit cap to its shaded side); a texture (wood grain, clutter) or a step (an
+    outline, the horizon) leaves a residual the size of its contrast, and a
+    plain wall has no rise.
+    """
+    worst, rise = _plane_fit(img)
     return (worst < (_RAMP_RESIDUAL * tau) ** 2) & (rise >= _RAMP_RISE * tau)
+
+
+def plane_fits(img: np.ndarray, tau: float) -> np.ndarray:
+    """(h, w) bool: where a tilted plane fits ``img`` over a 9 x 9 window within ``tau / 2`` RMS in each channel,
+    whatever its rise (:func:`shading_ramp` without the rise): smooth shading, or a plain stretch."""
+    return _plane_fit(img)[0] < (_RAMP_RESIDUAL * tau) ** 2
 
 
 def no_edge(img: np.ndarray, tau: float) -> np.ndarray:

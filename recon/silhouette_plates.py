@@ -29,10 +29,10 @@ from .silhouette_doubt import (
     colour_dist,
     colour_gradient,
     in_set,
+    plane_fits,
     plate_envelope,
     range_dist,
     rim_counts,
-    shading_ramp,
 )
 
 __all__ = ["Plates", "TablePlate", "rectify_to_table", "raster_to_table", "median_frames", "below_horizon",
@@ -349,7 +349,7 @@ def ground_match(img: np.ndarray, ground: np.ndarray, tau: float, noise: float =
 
 
 def reached_from_outside(room: np.ndarray, inside: np.ndarray, room_colours: np.ndarray, tau: float,
-                         off_table: np.ndarray | None = None) -> np.ndarray:
+                         shading: bool = True) -> np.ndarray:
     """(h, w) bool: where the room plate may vouch for the room inside the volume's image, by where it lies.
 
     A plain stretch of the plate is the room's where it joins the room outside
@@ -362,13 +362,17 @@ def reached_from_outside(room: np.ndarray, inside: np.ndarray, room_colours: np.
     a light wall: its shaded side taken for background, 6.1 % of the diagonal).
     Textured stretches (the gradient's 9 x 9 mean above ``2 tau``: a wooden
     table's grain, clutter) keep the colour rule: their own edges would cut
-    them off, and no plain static object looks like them. Except, ``off_table``
-    (where no view's ray meets the table plate's disc, so the room plate is
-    the only judge), a smooth ramp of shading (:func:`shading_ramp`) joined to
-    a colour the room never shows: a static head lit from above, whose shade
-    runs through the wall's grey between its lit cap and its dark chin, is no
-    stretch of the room (a white figure on a light wall: its head, vouched for,
-    was missing from every view and the model, 1.75 % of the diagonal).
+    them off, and no plain static object looks like them. Except (``shading``)
+    a smooth stretch (a tilted plane fits it, :func:`plane_fits`) joined to a
+    colour the room never shows: a static body's shading, whose grey runs
+    through the wall's between its lit side and its dark outline, is no
+    stretch of the room. A static head lit from above (a white figure on a
+    light wall: its head, vouched for, was missing from every view and the
+    model, 1.75 % of the diagonal); a static bottle lit from the side, whose
+    gentle shade in front of the paper (too gentle for :func:`shading_ramp`,
+    steep enough to count as texture) was vouched for as a stripe of the
+    room down its whole height in every view, and the hull lost a shell half
+    its radius deep (3.6 % of the diagonal on a light wall).
     """
     grad = colour_gradient(room)
     edge = cv2.dilate((grad > 2.0 * tau).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
@@ -379,15 +383,15 @@ def reached_from_outside(room: np.ndarray, inside: np.ndarray, room_colours: np.
     hit[np.unique(lab[free & ~inside])] = True
     hit[0] = False
     textured = cv2.blur(grad, (9, 9)) > 2.0 * tau
-    if off_table is not None:
-        # a smooth ramp that runs into a colour the room never shows is an object's shading
-        ramp = off_table & textured & shading_ramp(room, tau)
+    if shading:
+        # a smooth stretch that runs into a colour the room never shows is an object's shading
+        ramp = inside & textured & plane_fits(room, tau)
         n, rl = cv2.connectedComponents(ramp.astype(np.uint8), connectivity=8)
         foreign = cv2.dilate((inside & ~roomlike).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-        shading = np.zeros(n, bool)
-        shading[np.unique(rl[ramp & foreign])] = True
-        shading[0] = False
-        textured &= ~shading[rl]
+        smooth = np.zeros(n, bool)
+        smooth[np.unique(rl[ramp & foreign])] = True
+        smooth[0] = False
+        textured &= ~smooth[rl]
     return hit[lab] | textured
 
 
@@ -425,13 +429,7 @@ class Plates:
         self.table_disc = (raster_radius_px(self.table.shape[0])
                            <= self.plane_radius * PLANE_PX_PER_MM).astype(np.uint8)  # the plate's disc
         self.K, self.box = K, box
-        # the room plate is the only explanation where no view's ray meets the table plate's disc
-        on_table = np.zeros(room.shape[:2], bool)
-        for t in T:  # one view at a time: 72 views of a 12 MP work size would hold a GB at once
-            on_table |= self.plate_in_frame(t, room.shape[:2])
-        off_table = ~on_table
-        verified = ~inside | (in_set(room, room_colours)
-                              & reached_from_outside(room, inside, room_colours, tau, off_table))
+        verified = ~inside | (in_set(room, room_colours) & reached_from_outside(room, inside, room_colours, tau))
         self.room_verified = Plate(room, lo, hi, self.room.trust & verified, self.room.strong & verified)
 
     def _to_box(self, T: np.ndarray) -> np.ndarray:
