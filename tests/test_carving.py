@@ -330,6 +330,34 @@ def test_a_part_the_split_cut_off_is_joined_where_the_hull_before_held_the_gap()
     assert rejoin_cut_off(cut, dataclasses.replace(before, values=gap))[1] == 0
 
 
+def test_a_part_joined_only_along_a_voxel_edge_is_rejoined_as_the_mesh_would_split_it():
+    """The head on a neck thinned to one voxel that steps diagonally (1 mm voxels): one 26-connected body of
+    the hull, two pieces of the mesh, whose surface joins voxels across faces only. Where the hull before
+    the split held the neck, it comes back; the head touching the torso across a face is left alone."""
+    from recon.carving import rejoin_cut_off
+
+    vals = np.full((40, 60, 40), -1.0, np.float32)
+    vals[10:30, 0:40, 10:30] = 1.0  # the torso on the table
+    vals[20, 40, 20] = 1.0  # the neck: one voxel on the torso ...
+    vals[21, 41, 21] = 1.0  # ... and the next one up, diagonally (an edge-and-corner contact)
+    vals[14:26, 42:54, 14:26] = 1.0  # the head on it
+    cut = VoxelHull(values=vals, origin_table=np.zeros(3), voxel_mm=1.0)
+    before_vals = np.full((40, 60, 40), -1.0, np.float32)
+    before_vals[10:30, :54, 10:30] = 1.0  # the hull before the split: a neck as wide as the torso
+    before = VoxelHull(values=before_vals, origin_table=np.zeros(3), voxel_mm=1.0)
+    out, joined = rejoin_cut_off(cut, before)
+    assert joined == 1
+    added = (out.values > 0) & ~(vals > 0)
+    assert added[:, 40:42].sum() >= 8 and not added[:, :36].any() and not added[:, 46:].any()
+    from scipy import ndimage
+
+    assert ndimage.label(out.values > 0)[1] == 1  # one body across faces: one piece of the mesh
+    face = vals.copy()
+    face[21, 41, 21] = -1.0
+    face[20, 41, 20] = 1.0  # the neck's two voxels share a face: already one piece
+    assert rejoin_cut_off(dataclasses.replace(cut, values=face), before)[1] == 0
+
+
 def test_a_hull_cut_in_two_is_joined_by_a_little_more_tolerance():
     """A figure on its plinth (1 mm voxels, Y up) whose plinth a few views cut from the legs: two pieces on
     the table. Carved again tolerating one more view (``carve_at(k)``), the legs stand on the plinth: one
