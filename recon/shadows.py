@@ -330,7 +330,7 @@ def drop_cut_pieces(new: np.ndarray, inside: np.ndarray, restored: np.ndarray, v
     ``SMALL_PIECE`` of the largest, not counting the voxels the guard gave back: streaks along the guard's rays
     under a seat, which the skirt's rest joins, are what the rays left of the skirt, not a part (a white chair at
     1280 x 960: five such pieces, 3.7 % of the hull, kept the whole skirt, 2.86 % of the diagonal). A larger piece
-    that rests on the table wholly under the body (:func:`_rest_under_the_body`) is the skirt's rest too: the
+    that rests on the table wholly under the body (:func:`_under_the_body`) is the skirt's rest too: the
     centre under a chair's seat, in a shade darker than the shadow's (seed 14: 2.94 % kept whole). So is one
     floating wholly under the body that no silhouette pixel of the object's own needs (``unheld``, given the
     piece: dropped, it leaves none without a voxel behind it): the skirt's rest under a chair's seat whose foot
@@ -357,11 +357,13 @@ def drop_cut_pieces(new: np.ndarray, inside: np.ndarray, restored: np.ndarray, v
         body_cols = (lab == big).any(axis=1)
         for p in np.flatnonzero(cut & (own >= SMALL_PIECE * sizes[big])):
             piece = lab == p
-            if _rest_under_the_body(piece, body_cols, low):
-                continue
-            if unheld is not None and _under_the_body(piece, body_cols) and unheld(piece):
-                continue
-            return None  # a part of the object: the carving cut it
+            if not _under_the_body(piece, body_cols):
+                return None  # a part standing in the open (a block beside a post): the carving cut it
+            if piece[:, : low + 2, :].any():
+                continue  # resting on the table under the body: the skirt's rest
+            if unheld is not None and unheld(piece):
+                continue  # floating under the body where no silhouette pixel of the object's own needs it
+            return None  # floating where the masks hold it (a bar between legs): a part the carving cut off
         crumbs = cut[lab]
         out[crumbs] = np.minimum(out[crumbs], -0.5 * voxel_mm)
     if not (lab[:, : low + 2, :] == big).any():
@@ -369,17 +371,9 @@ def drop_cut_pieces(new: np.ndarray, inside: np.ndarray, restored: np.ndarray, v
     return out
 
 
-def _rest_under_the_body(piece: np.ndarray, body_cols: np.ndarray, low: int) -> bool:
-    """Whether the piece (a bool grid) rests on the table (its lowest voxel within two of the hull's lowest layer,
-    ``low``) wholly under the body: at least ``UNDER_SHARE`` of its columns (x, z) hold a voxel of the body
-    (``body_cols``, (x, z) bool), i.e. it is the rest of a skirt under an overhang (the centre under a chair's seat,
-    in a shade darker than the shadow's, which no rule releases), not a part standing on its own (a block beside a
-    post, open to the sky above)."""
-    if not piece[:, : low + 2, :].any():
-        return False  # it floats: a part (a bar between legs) the carving cut off
-    return _under_the_body(piece, body_cols)
-
-
 def _under_the_body(piece: np.ndarray, body_cols: np.ndarray) -> bool:
-    """Whether at least ``UNDER_SHARE`` of the piece's columns (x, z) hold a voxel of the body."""
+    """Whether the piece (a bool grid) lies wholly under the body: at least ``UNDER_SHARE`` of its columns (x, z)
+    hold a voxel of the body (``body_cols``, (x, z) bool), as the rest of a skirt under an overhang does (the
+    centre under a chair's seat, in a shade darker than the shadow's, which no rule releases), not a part
+    standing on its own (a block beside a post, open to the sky above)."""
     return bool(body_cols[piece.any(axis=1)].mean() >= UNDER_SHARE)
