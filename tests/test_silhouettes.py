@@ -1120,27 +1120,35 @@ def test_ink_is_reproduced_only_with_its_contrast():
     assert not seen(np.full((40, 40), 200.0)).any()
 
 
+def _grained_room(room: np.ndarray, grain: tuple[slice, slice], inside: np.ndarray, seed: int):
+    """A synthetic room plate (float (h, w, 3)) with a patch of wood grain (4 px stripes of 120 / 160) at
+    ``grain``, noise of 1 grey level added: the plate as uint8, and the room's colour set (what it shows
+    outside the volume's image ``inside``, and the wood, which the room shows elsewhere too)."""
+    from recon.silhouette_doubt import colour_set
+
+    xx = np.mgrid[: room.shape[0], : room.shape[1]][1]
+    room = room.copy()
+    room[grain] = (120.0 + 40.0 * (np.sin(xx[grain] * 1.3) > 0))[..., None]
+    room = np.clip(room + np.random.default_rng(seed).normal(0.0, 1.0, room.shape), 0, 255).astype(np.uint8)
+    return room, colour_set(np.concatenate([room[~inside], room[grain].reshape(-1, 3)]))
+
+
 def test_room_plate_vouches_only_for_the_plain_room_it_reaches():
     """A light grey wall (150) seen outside and inside the volume's image, and inside it a static plain
     object (a disc of 156, one of the wall's colours, ringed by its darker outline) and a patch of wood
     grain. The wall inside is the room's; the object is not, though its colour is; the grain keeps the
     colour rule (its own edges would cut it off)."""
-    from recon.silhouette_doubt import colour_set
     from recon.silhouette_plates import reached_from_outside
 
-    rng = np.random.default_rng(0)
     room = np.full((130, 170, 3), 150.0)
     yy, xx = np.mgrid[:130, :170]
     r = np.hypot(yy - 65, xx - 62)
     room[r < 32] = 156.0  # the object's plain shade: within a bin of the wall's
     room[(r >= 30) & (r < 32)] = 110.0  # its outline, darker (the edge between it and the wall)
     grain = (slice(30, 90), slice(110, 150))
-    room[grain] = (120.0 + 40.0 * (np.sin(xx[grain] * 1.3) > 0))[..., None]  # stripes, 4 px
-    room = np.clip(room + rng.normal(0.0, 1.0, room.shape), 0, 255).astype(np.uint8)
     inside = np.zeros((130, 170), bool)
     inside[10:120, 20:160] = True
-    outside = np.concatenate([room[~inside], room[grain].reshape(-1, 3)])  # the room shows the wood elsewhere too
-    colours = colour_set(outside)
+    room, colours = _grained_room(room, grain, inside, seed=0)
     reached = reached_from_outside(room, inside, colours, tau=6.0, shading=False)
     assert reached[15:25, 105:150].all()  # the wall inside the volume's image
     assert not reached[r < 20].any()  # the object's plain interior (its outline's texture reaches a few px in)
@@ -1154,21 +1162,18 @@ def test_room_plate_does_not_vouch_for_a_static_head_shaded_through_the_walls_gr
     """A static head on the axis (a sphere, lit from above) seen against a grey wall: its shade ramps
     smoothly from light to dark through the wall's grey (150). The ramp is steep enough to count as
     texture, but a plane fits it where grain or a step would not: off the table, it is no room's."""
-    from recon.silhouette_doubt import colour_set, shading_ramp
+    from recon.silhouette_doubt import shading_ramp
     from recon.silhouette_plates import reached_from_outside
 
-    rng = np.random.default_rng(1)
     room = np.full((120, 160, 3), 150.0)
     yy, xx = np.mgrid[:120, :160]
     r = np.hypot(yy - 60, xx - 50)
     head = r < 24
     room[head] = (150.0 - 100.0 * (yy[head] - 60) / 24.0)[:, None]  # 250 at its top, 50 at its bottom
     grain = (slice(30, 90), slice(100, 140))
-    room[grain] = (120.0 + 40.0 * (np.sin(xx[grain] * 1.3) > 0))[..., None]
-    room = np.clip(room + rng.normal(0.0, 1.0, room.shape), 0, 255).astype(np.uint8)
     inside = np.zeros((120, 160), bool)
     inside[10:110, 15:150] = True
-    colours = colour_set(np.concatenate([room[~inside], room[grain].reshape(-1, 3)]))
+    room, colours = _grained_room(room, grain, inside, seed=1)
     wall_grey = head & (np.abs(yy - 60) < 3) & (r < 18)  # the head's pixels in the wall's grey, off its outline
     old = reached_from_outside(room, inside, colours, tau=6.0, shading=False)
     assert old[wall_grey].all()  # by its texture alone, the head's grey band was the wall's
@@ -1185,21 +1190,18 @@ def test_room_plate_does_not_vouch_for_a_static_bodys_gentle_shade_in_the_walls_
     texture, yet it rises too little across a window for a shading ramp; a plane still fits it, and it
     runs into the bottle's lit colours, which the room never shows: no stretch of the room (a white
     bottle on a light wall lost a shell half its radius deep, 3.6 % of the diagonal)."""
-    from recon.silhouette_doubt import colour_set, shading_ramp
+    from recon.silhouette_doubt import shading_ramp
     from recon.silhouette_plates import reached_from_outside
 
-    rng = np.random.default_rng(2)
     room = np.full((120, 170, 3), 150.0)
     yy, xx = np.mgrid[:120, :170]
     body = (np.abs(xx - 60) < 40) & (yy > 15) & (yy < 105)
     room[body] = (210.0 - 1.4 * (xx[body] - 20))[:, None]
     room[body & (np.abs(xx - 60) >= 38)] = 90.0  # its dark outline
     grain = (slice(30, 90), slice(115, 155))
-    room[grain] = (120.0 + 40.0 * (np.sin(xx[grain] * 1.3) > 0))[..., None]
-    room = np.clip(room + rng.normal(0.0, 1.0, room.shape), 0, 255).astype(np.uint8)
     inside = np.zeros((120, 170), bool)
     inside[8:112, 12:162] = True
-    colours = colour_set(np.concatenate([room[~inside], room[grain].reshape(-1, 3)]))
+    room, colours = _grained_room(room, grain, inside, seed=2)
     grey = body & (np.abs(room[..., 0].astype(int) - 150) < 6) & (np.abs(xx - 60) < 34) & (yy > 22) & (yy < 98)
     assert grey.sum() > 400
     old = reached_from_outside(room, inside, colours, tau=6.0, shading=False)
