@@ -36,7 +36,7 @@ from pathlib import Path
 
 from recon.fileio import atomic_write_bytes
 
-from .errors import UserError
+from .errors import UserError, check_terminated
 
 __all__ = ["OutputFolder", "KNOWN_OUTPUTS", "DISK_FULL_ERRNOS", "leftovers", "write_error"]
 
@@ -214,6 +214,7 @@ class OutputFolder:
     # -- publishing ---------------------------------------------------------------------
     def publish(self) -> None:
         """Switch the staged files into OUT: all of them, replacing the previous run's set."""
+        check_terminated()  # a SIGTERM whose exception a library swallowed: never publish after it
         names = sorted(p.name for p in self.staging.iterdir())
         manifest = {"files": names, "pid": os.getpid(), "time": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
         atomic_write_bytes(self.staging / _MANIFEST, (json.dumps(manifest, indent=1) + "\n").encode())

@@ -6,6 +6,8 @@ import sys
 import time
 from contextlib import contextmanager
 
+from .errors import check_terminated
+
 __all__ = ["Progress", "fit_reporter"]
 
 
@@ -31,10 +33,12 @@ class Progress:
 
     @contextmanager
     def stage(self, name: str):
+        check_terminated()  # a SIGTERM a library swallowed in the last stage ends the run here
         t0 = time.perf_counter()
         last = [0.0, 0]  # time of the last live update; last quarter logged
 
         def tick(done: int, total: int) -> None:
+            check_terminated()
             now = time.perf_counter()
             if not self.tty:  # a log: a line at each quarter of a long count, nothing else
                 quarter = 4 * done // max(total, 1)

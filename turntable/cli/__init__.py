@@ -15,7 +15,7 @@ import importlib.util
 import logging
 import sys
 
-from ..errors import UserError
+from ..errors import Terminated, UserError, check_terminated, note_termination
 
 # name -> (module, one-line help), in the order of the work: print the target, check the camera, calibrate a
 # sequence, reconstruct, look at it; synth makes test sequences
@@ -148,15 +148,8 @@ def build_parser(commands: dict[str, tuple[str, str]]) -> argparse.ArgumentParse
 INTERNAL_ERROR = 4
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM (or SIGHUP) received: unwound like Ctrl-C, so every run cleans up the same way."""
-
-    def __init__(self, signum: int):
-        super().__init__(signum)
-        self.signum = signum
-
-
 def _raise_terminated(signum, frame) -> None:
+    note_termination(signum)  # sticky: checked again before publishing and at the end of the run
     raise Terminated(signum)
 
 
@@ -190,12 +183,15 @@ def main(argv: list[str] | None = None) -> int:
     level = logging.WARNING - 10 * min(args.verbose, 2)
     # force: rebind to the current stderr on every call (tests, or a host program, may swap it)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", force=True)
+    note_termination(None)
     previous = _handle_termination()
     for stream in (sys.stdout, sys.stderr):  # odd file names (undecodable bytes) print as \xNN, never fail
         if hasattr(stream, "reconfigure"):
             stream.reconfigure(errors="backslashreplace")
     try:
-        return int(importlib.import_module(args._module).run(args) or 0)
+        code = int(importlib.import_module(args._module).run(args) or 0)
+        check_terminated()  # a signal whose exception a library swallowed still ends the run as one
+        return code
     except UserError as exc:
         print(f"turntable {args.command}: error: {exc}", file=sys.stderr)
         return 2
