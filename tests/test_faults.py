@@ -282,13 +282,17 @@ def test_a_sigterm_a_library_swallows_still_ends_the_run_and_publishes_nothing(g
 
     monkeypatch.setattr(recon.meshing, "mesh_from_hull", library_step)
     out = _copy(good, tmp_path)
-    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # main() installs its own, in the main thread
-    code = main(_args(scene, out, "--overwrite"))
+    before = signal.signal(signal.SIGTERM, signal.SIG_DFL)  # as in a fresh process: main() installs its own
+    try:
+        code = main(_args(scene, out, "--overwrite"))
+        after = signal.getsignal(signal.SIGTERM)
+    finally:
+        signal.signal(signal.SIGTERM, before)
     err = capsys.readouterr().err
     assert swallowed == ["Terminated"]
     assert code == 128 + signal.SIGTERM and "terminated (signal 15)" in err, err
     assert published_digests(out) == good[1] and run_leftovers(out) == []
-    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+    assert after == signal.SIG_DFL  # main() put back what it found
     monkeypatch.undo()
     assert main(_args(scene, out, "--overwrite")) == 0  # the next run starts with no signal remembered
 

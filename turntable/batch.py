@@ -142,14 +142,36 @@ def _connect(address: str | None) -> bool:
     if ray.is_initialized():
         return False
     kw: dict = {"log_to_driver": False, "logging_level": logging.WARNING}
-    if address is None:
-        ray.init(include_dashboard=False, **kw)
-    else:
-        try:
-            ray.init(address=address, **kw)
-        except (ConnectionError, RuntimeError, ValueError) as exc:
-            raise UserError(f"--address {address}: cannot connect to a Ray cluster there: {exc}") from None
+    with _signal_handlers_kept():
+        if address is None:
+            ray.init(include_dashboard=False, **kw)
+        else:
+            try:
+                ray.init(address=address, **kw)
+            except (ConnectionError, RuntimeError, ValueError) as exc:
+                raise UserError(f"--address {address}: cannot connect to a Ray cluster there: {exc}") from None
     return True
+
+
+@contextlib.contextmanager
+def _signal_handlers_kept():
+    """Put SIGTERM's and SIGHUP's Python handlers back after the block (main thread only).
+
+    ``ray.init`` installs its own SIGTERM handler (``sys.exit(15)``): a batch sent SIGTERM ended with exit
+    15 and no message, where the CLI's handler ends it like Ctrl-C (jobs stopped, the report written, 143).
+    """
+    import signal
+    import threading
+
+    names = [n for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n)]
+    main = threading.current_thread() is threading.main_thread()
+    saved = {getattr(signal, n): signal.getsignal(getattr(signal, n)) for n in names} if main else {}
+    try:
+        yield
+    finally:
+        for sig, handler in saved.items():
+            if handler is not None:
+                signal.signal(sig, handler)
 
 
 def _record_path(out: Path, name: str) -> Path:
