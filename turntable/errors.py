@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["Terminated", "UserError", "check_terminated", "note_termination", "termination_received"]
+__all__ = ["Terminated", "UserError", "check_terminated", "note_termination"]
 
 
 class UserError(Exception):
@@ -28,11 +28,6 @@ def note_termination(signum: int | None) -> None:
     """Remember (or, with ``None``, forget) a termination signal; the CLI's handler calls this."""
     global _received
     _received = signum
-
-
-def termination_received() -> int | None:
-    """The termination signal received so far, or ``None``."""
-    return _received
 
 
 def check_terminated() -> None:
