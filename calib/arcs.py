@@ -282,7 +282,8 @@ def find_ellipses(arcs: Arcs, image_size: tuple[int, int], *, tol_px: float = 1.
     if len(C) == 0:
         return []
     support = _support(C, arcs, ev, tol_px)  # (H, E) bool
-    lengths = arcs.length[ev] * np.where(arcs.partnered[ev], 1.0, lone_weight)
+    weight = arcs.length * np.where(arcs.partnered, 1.0, lone_weight)
+    lengths = weight[ev]
     avail = np.ones(len(ev), bool)
     found: list[ArcEllipse] = []
     for _ in range(4 * max_ellipses):
@@ -293,18 +294,11 @@ def find_ellipses(arcs: Arcs, image_size: tuple[int, int], *, tol_px: float = 1.
             break
         members = support[best] & avail
         conic = C[best]
-        for _ in range(1):  # refit on the supporting arcs, collect again
-            Qr, okr = fit_scatter(arcs.scatter[ev[members]].sum(axis=0)[None])
-            if not okr[0]:
-                break
-            Cr = to_pixels(Qr, arcs.norm)
-            if not _plausible(Cr, w, h, min_axis_px, min_aspect)[0]:
-                break
-            conic = Cr[0]
-            members = _support(Cr, arcs, ev, tol_px)[0] & avail
-        a, b, _ = _axes(conic[None])
-        perimeter = np.pi * (3 * (a[0] + b[0]) - np.sqrt((3 * a[0] + b[0]) * (a[0] + 3 * b[0])))
-        cov = float(lengths[members].sum() / perimeter) if np.isfinite(perimeter) else 0.0
+        refit = _fit_arcs(arcs, ev[members], w, h, min_axis_px, min_aspect)  # on the supporting arcs
+        if refit is not None:  # collect again
+            conic = refit
+            members = _support(refit[None], arcs, ev, tol_px)[0] & avail
+        cov = _coverage(conic, float(lengths[members].sum()))
         if np.count_nonzero(members) >= 2 and cov >= min_coverage:
             found.append(ArcEllipse(conic=conic, arc_ids=ev[members], support_px=float(lengths[members].sum()),
                                     coverage=cov))
@@ -313,8 +307,24 @@ def find_ellipses(arcs: Arcs, image_size: tuple[int, int], *, tol_px: float = 1.
             support[best] = False
         if not avail.any() or len(found) == max_ellipses:
             break
-    weight = arcs.length * np.where(arcs.partnered, 1.0, lone_weight)
     return _join_fragments(found, arcs, weight, (w, h), tol_px, min_axis_px, min_aspect)
+
+
+def _fit_arcs(arcs: Arcs, ids: np.ndarray, w: int, h: int, min_axis_px: float,
+              min_aspect: float) -> np.ndarray | None:
+    """The ellipse (pixel conic) fitted to the arcs ``ids`` together, or None where it is not a plausible one."""
+    Q, ok = fit_scatter(arcs.scatter[ids].sum(axis=0)[None])
+    if not ok[0]:
+        return None
+    C = to_pixels(Q, arcs.norm)
+    return C[0] if _plausible(C, w, h, min_axis_px, min_aspect)[0] else None
+
+
+def _coverage(conic: np.ndarray, support_px: float) -> float:
+    """``support_px`` over the ellipse's perimeter (Ramanujan's approximation); 0 where it has none."""
+    a, b, _ = _axes(conic[None])
+    perimeter = np.pi * (3 * (a[0] + b[0]) - np.sqrt((3 * a[0] + b[0]) * (a[0] + 3 * b[0])))
+    return float(support_px / perimeter) if np.isfinite(perimeter) else 0.0
 
 
 def _join_fragments(found: list[ArcEllipse], arcs: Arcs, weight: np.ndarray, size: tuple[int, int],
@@ -337,23 +347,17 @@ def _join_fragments(found: list[ArcEllipse], arcs: Arcs, weight: np.ndarray, siz
         best = None
         for p, q in combinations(range(len(found)), 2):
             ids = np.union1d(found[p].arc_ids, found[q].arc_ids)
-            Q, ok = fit_scatter(arcs.scatter[ids].sum(axis=0)[None])
-            if not ok[0]:
+            C = _fit_arcs(arcs, ids, w, h, min_axis_px, min_aspect)
+            if C is None:
                 continue
-            C = to_pixels(Q, arcs.norm)
-            if not _plausible(C, w, h, min_axis_px, min_aspect)[0]:
-                continue
-            d = sampson_batch(C, arcs.samples_px[ids].reshape(-1, 2)).reshape(len(ids), -1)
-            held = np.mean(d < tol_px, axis=1) >= 0.8
+            held = _support(C[None], arcs, ids, tol_px)[0]
             total = float(weight[ids].sum())
             if weight[ids][held].sum() >= 0.9 * total and (best is None or total > best[0]):
-                best = (total, p, q, C[0], ids)
+                best = (total, p, q, C, ids)
         if best is None:
             break
         total, p, q, C, ids = best
-        ja, jb, _ = _axes(C[None])
-        perimeter = np.pi * (3 * (ja[0] + jb[0]) - np.sqrt((3 * ja[0] + jb[0]) * (ja[0] + 3 * jb[0])))
-        joined = ArcEllipse(conic=C, arc_ids=ids, support_px=total, coverage=float(total / perimeter))
+        joined = ArcEllipse(conic=C, arc_ids=ids, support_px=total, coverage=_coverage(C, total))
         found = sorted([e for k, e in enumerate(found) if k not in (p, q)] + [joined], key=lambda e: -e.support_px)
     return found
 
