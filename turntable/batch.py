@@ -61,7 +61,7 @@ from .batch_report import (
     write_thumbnail,
 )
 from .cameras_io import atomic_write_text
-from .errors import UserError
+from .errors import TERMINATION_SIGNALS, UserError
 from .stages.options import ReconstructOptions
 
 __all__ = ["Job", "find_objects", "read_settings", "check_settings", "read_manifest", "ManifestEntry", "check_name",
@@ -155,7 +155,7 @@ def _connect(address: str | None) -> bool:
 
 @contextlib.contextmanager
 def _signal_handlers_kept():
-    """Put SIGTERM's and SIGHUP's Python handlers back after the block (main thread only).
+    """Put the termination signals' Python handlers back after the block (main thread only).
 
     ``ray.init`` installs its own SIGTERM handler (``sys.exit(15)``): a batch sent SIGTERM ended with exit
     15 and no message, where the CLI's handler ends it like Ctrl-C (jobs stopped, the report written, 143).
@@ -163,7 +163,7 @@ def _signal_handlers_kept():
     import signal
     import threading
 
-    names = [n for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n)]
+    names = [n for n in TERMINATION_SIGNALS if hasattr(signal, n)]
     main = threading.current_thread() is threading.main_thread()
     saved = {getattr(signal, n): signal.getsignal(getattr(signal, n)) for n in names} if main else {}
     try:

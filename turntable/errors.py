@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
-__all__ = ["Terminated", "UserError", "check_terminated", "note_termination"]
+__all__ = [
+    "TERMINATION_SIGNALS", "Terminated", "UserError", "check_terminated", "note_termination", "noted_termination",
+]
+
+#: The signals a run ends on like Ctrl-C (names: Windows has no SIGHUP).
+TERMINATION_SIGNALS = ("SIGTERM", "SIGHUP")
 
 
 class UserError(Exception):
@@ -28,6 +33,12 @@ def note_termination(signum: int | None) -> None:
     """Remember (or, with ``None``, forget) a termination signal; the CLI's handler calls this."""
     global _received
     _received = signum
+
+
+def noted_termination() -> int | None:
+    """The termination signal noted, if any: what a plain KeyboardInterrupt really was where a library turned
+    the :class:`Terminated` raised inside it into one (Ray's ``ray.wait`` does)."""
+    return _received
 
 
 def check_terminated() -> None:

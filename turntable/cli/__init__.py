@@ -15,7 +15,14 @@ import importlib.util
 import logging
 import sys
 
-from ..errors import Terminated, UserError, check_terminated, note_termination
+from ..errors import (
+    TERMINATION_SIGNALS,
+    Terminated,
+    UserError,
+    check_terminated,
+    note_termination,
+    noted_termination,
+)
 
 # name -> (module, one-line help), in the order of the work: print the target, check the camera, calibrate a
 # sequence, reconstruct, look at it; synth makes test sequences
@@ -161,7 +168,7 @@ def _handle_termination() -> dict:
     if threading.current_thread() is not threading.main_thread():
         return {}
     previous = {}
-    for name in ("SIGTERM", "SIGHUP"):
+    for name in TERMINATION_SIGNALS:
         sig = getattr(signal, name, None)
         if sig is not None and signal.getsignal(sig) in (signal.SIG_DFL, None):
             previous[sig] = signal.signal(sig, _raise_terminated)
@@ -195,11 +202,11 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as exc:
         print(f"turntable {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except Terminated as exc:
-        print(f"turntable {args.command}: terminated (signal {exc.signum})",
-              file=sys.stderr)
-        return 128 + exc.signum
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:  # Ctrl-C, or Terminated (or the plain one a library made of it)
+        signum = exc.signum if isinstance(exc, Terminated) else noted_termination()
+        if signum is not None:
+            print(f"turntable {args.command}: terminated (signal {signum})", file=sys.stderr)
+            return 128 + signum
         print(f"turntable {args.command}: interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # last resort: a message, not a traceback
