@@ -92,14 +92,16 @@ class Skirt:
     views: int
 
 
-def _splat(pts: np.ndarray, K, T, shape) -> np.ndarray:
-    """(h, w) bool: the pixels of the points, grown to cover the gaps between voxel centres."""
+def _splat(pts: np.ndarray, K, T, shape, grow: bool = True) -> np.ndarray:
+    """(h, w) bool: the pixels of the points with the gaps between voxel centres closed, and grown by a pixel
+    all round where ``grow``."""
     cov = np.zeros(shape, np.uint8)
     if len(pts):
         uv = np.rint(project_points(K, T, pts)).astype(int)
         ok = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < shape[1]) & (uv[:, 1] < shape[0])
         cov[uv[ok, 1], uv[ok, 0]] = 1
-    cov = cv2.dilate(cov, np.ones((3, 3), np.uint8))
+    if grow:
+        cov = cv2.dilate(cov, np.ones((3, 3), np.uint8))
     return cv2.morphologyEx(cov, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)) > 0
 
 
@@ -228,7 +230,10 @@ def carve_cast_shadows(hull: VoxelHull, images_rgb, masks: np.ndarray, unknown: 
     shape = masks[0].shape
     views: list[_View] = []
     for img, m, u, T in zip(images_rgb, masks, unknown, Ts, strict=True):
-        w = _view(np.asarray(img), m | u, _splat(high_pts, K, T, shape), _splat(shell_pts, K, T, shape), K, T, radius)
+        # the high part's image is not grown: from high up, the skirt against the foot under an overhang (a belly,
+        # a spout) shows only in the pixel or two just below the overhang's outline
+        high = _splat(high_pts, K, T, shape, grow=False)
+        w = _view(np.asarray(img), m | u, high, _splat(shell_pts, K, T, shape), K, T, radius)
         if w is None:
             return hull, None
         views.append(w)

@@ -138,6 +138,26 @@ def test_the_skirt_under_an_overhang_is_carved_and_the_body_kept(scene):
     assert (out.values > 0).sum() < (hull.values > 0).sum()
 
 
+def test_the_pixels_just_below_the_overhangs_outline_count():
+    """From high up (50 deg) the skirt against the foot under the belly shows only in the pixels just below the
+    belly's outline. The high part's image is not grown by a pixel, so those pixels count (49 % of the skirt
+    within 5 mm of the foot is left, 62 % with the image grown); the body is kept whole."""
+    T = turntable_ring(24, look_y_mm=25.0, elevation_deg=50.0)
+    images, masks, unknown = _render(T, np.random.default_rng(0), with_shadow_in_mask=True)
+    hull = _hull(masks, T)
+    rng = np.random.default_rng(1)
+    a = rng.uniform(0.0, 2 * np.pi, 4000)
+    r = rng.uniform(FOOT_R + 1.0, FOOT_R + 5.0, len(a))
+    skirt = np.column_stack([r * np.cos(a), rng.uniform(0.5, 5.0, len(a)), r * np.sin(a)])
+    assert hull_holds(hull, skirt).mean() > 0.9
+    out, info = carve_cast_shadows(hull, images, masks, unknown, K, T)
+    assert info is not None
+    assert hull_holds(out, skirt).mean() < 0.56
+    body = _points_in_body(1.5 * hull.voxel_mm, rng)
+    body = body[hull_holds(hull, body)]
+    assert hull_holds(out, body).mean() > 0.999
+
+
 def test_silhouettes_without_the_shadow_leave_nothing_to_carve():
     T = turntable_ring(24, look_y_mm=25.0)
     images, masks, unknown = _render(T, np.random.default_rng(2), with_shadow_in_mask=False)
