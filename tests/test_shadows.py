@@ -361,3 +361,35 @@ def test_the_skirts_rest_floating_under_the_seat_goes_where_no_silhouette_needs_
     new2[slab] = -0.5
     new2[12:20, 5:6, 12:20] = -0.5  # the block's foot too: it floats
     assert drop_cut_pieces(new2, post, none, 1.0, lambda piece: True) is None
+
+
+def test_the_guard_kept_shallow_gives_back_only_what_lies_just_behind_the_nearest():
+    """``guard_depth_mm``: on each pixel's ray the guard gives back the carved voxels within that depth of the
+    nearest one, not the whole ray (from 20 deg a ray runs ~35 mm through a skirt 12 mm high, and a few pixels of
+    a shadow's soft edge gave a whole skirt back). Kept shallow, the guard still keeps the body whole and the
+    skirt goes at least as far as with the whole rays."""
+    from recon.shadows import GUARD_DEPTH_MM, _nearest_on_rays
+
+    T = turntable_ring(1, look_y_mm=25.0)[0]
+    centre = -T[:3, :3].T @ T[:3, 3]
+    ray = np.array([10.0, 5.0, 0.0]) - centre
+    ray /= np.linalg.norm(ray)
+    depths = np.arange(0.0, 12.0)  # along one pixel's ray, 1 mm apart, and a point off it, alone on its pixel
+    pts = np.vstack([np.array([10.0, 5.0, 0.0]) + depths[:, None] * ray, [[-20.0, 5.0, 0.0]]])
+    kept = _nearest_on_rays(K, T, pts, 3.0)
+    assert kept.tolist() == [True] * 4 + [False] * 8 + [True]
+
+    Ts = turntable_ring(24, look_y_mm=25.0)
+    images, masks, unknown = _render(Ts, np.random.default_rng(0), with_shadow_in_mask=True)
+    hull = _hull(masks, Ts)
+    rng = np.random.default_rng(1)
+    a = rng.uniform(0.0, 2 * np.pi, 4000)
+    r = rng.uniform(FOOT_R + 2.0, 20.0, len(a))
+    skirt = np.column_stack([r * np.cos(a), rng.uniform(0.5, 2.5, len(a)), r * np.sin(a)])
+    whole, _ = carve_cast_shadows(hull, images, masks, unknown, K, Ts)
+    shallow, info = carve_cast_shadows(hull, images, masks, unknown, K, Ts, guard_depth_mm=GUARD_DEPTH_MM)
+    assert info is not None
+    assert hull_holds(shallow, skirt).mean() <= hull_holds(whole, skirt).mean()
+    body = _points_in_body(1.5 * hull.voxel_mm, rng)
+    body = body[hull_holds(hull, body)]
+    assert hull_holds(shallow, body).mean() > 0.999

@@ -203,6 +203,17 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
                     f"do see there, carved ({hull_stage.volume_text(mm3)})")
             progress.note(f"hull: {note}")
             carved.report.setdefault("notes", []).append(note)
+        if unders and opts.masks_dir is None:  # the skirt under the slab, seen now that the wedge over it is gone
+            from recon.shadows import GUARD_DEPTH_MM, SKIRT_MM, carve_cast_shadows
+
+            with progress.stage("cast shadows"):
+                hull, skirt = carve_cast_shadows(hull, images_rgb, masks, carved.silhouettes.unknown[keep], K, Ts,
+                                                 guard_depth_mm=GUARD_DEPTH_MM)
+            if skirt is not None:
+                note = (f"under the slab, the cast shadow's skirt within {SKIRT_MM:.0f} mm of the table carved "
+                        f"({hull_stage.volume_text(skirt.volume_mm3)})")
+                progress.note(f"hull: {note}")
+                carved.report.setdefault("notes", []).append(note)
 
     from recon.sides import flatten_sides
 
