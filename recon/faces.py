@@ -252,12 +252,22 @@ def find_faces(images_rgb, masks, K, Ts, hull: VoxelHull, swept: Sweep | None = 
             r = max(int(round(INNER_MM * sw.px)), 1)
             inner = cv2.erode(face.region.astype(np.uint8), np.ones((2 * r + 1,) * 2, np.uint8)) > 0
             above = range(k + max(int(round(1.0 / step)), 1), min(k + int(round(RISE_MM / step)) + 1, len(heights)))
-            if not inner.any() or any((sw.outline(j, share) & inner).sum() > RISE_SHARE * inner.sum() for j in above):
+            if not inner.any() or any(_rises_inside(sw.outline(j, share), face.region, inner) > RISE_SHARE * inner.sum()
+                                      for j in above):
                 continue
             if _stands_high(face, hull, Ts):
                 continue
             faces.append(face)
     return [f for f in faces if not _under_a_top(f, faces)]
+
+
+def _rises_inside(outline: np.ndarray, region: np.ndarray, inner: np.ndarray) -> int:
+    """The texels of ``inner`` that a higher height's ``outline`` puts inside the face, not counting an outline
+    that runs on to the face's edge: a wall standing on the edge (a chair's back on its seat's rear edge)."""
+    on = outline & region
+    n, lab = cv2.connectedComponents(on.astype(np.uint8), connectivity=8)
+    edge = np.unique(lab[on & ~inner])
+    return int((on & inner & ~np.isin(lab, edge[edge > 0])).sum())
 
 
 def same_top(face: Face, lower: Face) -> bool:
