@@ -265,7 +265,7 @@ def _rises_inside(outline: np.ndarray, region: np.ndarray, inner: np.ndarray) ->
     """The texels of ``inner`` that a higher height's ``outline`` puts inside the face, not counting an outline
     that runs on to the face's edge: a wall standing on the edge (a chair's back on its seat's rear edge)."""
     on = outline & region
-    n, lab = cv2.connectedComponents(on.astype(np.uint8), connectivity=8)
+    _, lab = cv2.connectedComponents(on.astype(np.uint8), connectivity=8)
     edge = np.unique(lab[on & ~inner])
     return int((on & inner & ~np.isin(lab, edge[edge > 0])).sum())
 
