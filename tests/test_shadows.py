@@ -112,6 +112,14 @@ def _points_in_body(margin: float, rng) -> np.ndarray:
     return p[in_ball | in_foot]
 
 
+def _skirt_points(rng, r_lo: float, r_hi: float, y_hi: float) -> np.ndarray:
+    """4000 points on the paper round the foot, ``r_lo`` to ``r_hi`` mm from the axis, 0.5 to ``y_hi`` mm up: where
+    the held shadow leaves its skirt."""
+    a = rng.uniform(0.0, 2 * np.pi, 4000)
+    r = rng.uniform(r_lo, r_hi, len(a))
+    return np.column_stack([r * np.cos(a), rng.uniform(0.5, y_hi, len(a)), r * np.sin(a)])
+
+
 @pytest.fixture(scope="module")
 def scene():
     T = turntable_ring(24, look_y_mm=25.0)
@@ -122,10 +130,7 @@ def scene():
 def test_the_skirt_under_an_overhang_is_carved_and_the_body_kept(scene):
     images, masks, unknown, T, hull = scene
     rng = np.random.default_rng(1)
-    # the paper under the belly, outside the foot: the skirt the held shadow left there
-    a = rng.uniform(0.0, 2 * np.pi, 4000)
-    r = rng.uniform(FOOT_R + 2.0, 20.0, len(a))
-    skirt = np.column_stack([r * np.cos(a), rng.uniform(0.5, 2.5, len(a)), r * np.sin(a)])
+    skirt = _skirt_points(rng, FOOT_R + 2.0, 20.0, 2.5)  # the paper under the belly, outside the foot
     assert hull_holds(hull, skirt).mean() > 0.6  # the silhouettes left most of it (else the test tests nothing)
     out, info = carve_cast_shadows(hull, images, masks, unknown, K, T)
     assert info is not None
@@ -146,9 +151,7 @@ def test_the_pixels_just_below_the_overhangs_outline_count():
     images, masks, unknown = _render(T, np.random.default_rng(0), with_shadow_in_mask=True)
     hull = _hull(masks, T)
     rng = np.random.default_rng(1)
-    a = rng.uniform(0.0, 2 * np.pi, 4000)
-    r = rng.uniform(FOOT_R + 1.0, FOOT_R + 5.0, len(a))
-    skirt = np.column_stack([r * np.cos(a), rng.uniform(0.5, 5.0, len(a)), r * np.sin(a)])
+    skirt = _skirt_points(rng, FOOT_R + 1.0, FOOT_R + 5.0, 5.0)
     assert hull_holds(hull, skirt).mean() > 0.9
     out, info = carve_cast_shadows(hull, images, masks, unknown, K, T)
     assert info is not None
@@ -363,7 +366,7 @@ def test_the_skirts_rest_floating_under_the_seat_goes_where_no_silhouette_needs_
     assert drop_cut_pieces(new2, post, none, 1.0, lambda piece: True) is None
 
 
-def test_the_guard_kept_shallow_gives_back_only_what_lies_just_behind_the_nearest():
+def test_the_guard_kept_shallow_gives_back_only_what_lies_just_behind_the_nearest(scene):
     """``guard_depth_mm``: on each pixel's ray the guard gives back the carved voxels within that depth of the
     nearest one, not the whole ray (from 20 deg a ray runs ~35 mm through a skirt 12 mm high, and a few pixels of
     a shadow's soft edge gave a whole skirt back). Kept shallow, the guard still keeps the body whole and the
@@ -379,13 +382,9 @@ def test_the_guard_kept_shallow_gives_back_only_what_lies_just_behind_the_neares
     kept = _nearest_on_rays(K, T, pts, 3.0)
     assert kept.tolist() == [True] * 4 + [False] * 8 + [True]
 
-    Ts = turntable_ring(24, look_y_mm=25.0)
-    images, masks, unknown = _render(Ts, np.random.default_rng(0), with_shadow_in_mask=True)
-    hull = _hull(masks, Ts)
+    images, masks, unknown, Ts, hull = scene
     rng = np.random.default_rng(1)
-    a = rng.uniform(0.0, 2 * np.pi, 4000)
-    r = rng.uniform(FOOT_R + 2.0, 20.0, len(a))
-    skirt = np.column_stack([r * np.cos(a), rng.uniform(0.5, 2.5, len(a)), r * np.sin(a)])
+    skirt = _skirt_points(rng, FOOT_R + 2.0, 20.0, 2.5)
     whole, _ = carve_cast_shadows(hull, images, masks, unknown, K, Ts)
     shallow, info = carve_cast_shadows(hull, images, masks, unknown, K, Ts, guard_depth_mm=GUARD_DEPTH_MM)
     assert info is not None
