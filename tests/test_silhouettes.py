@@ -1329,9 +1329,10 @@ def test_a_notch_neighbouring_views_leave_out_is_found_a_tunnel_many_see_through
     outline 17 px into the body at 60 mm (the lit shoulder of a white teapot beside its lid, like the paper):
     their rays carve, with a few views on the same side of the turn only, space deep inside what every other
     view holds, so the notch is returned in them. The tunnel, seen through by the two views at its ends only,
-    opposite each other, is an opening: not returned; nor any rim of a view whose silhouette is right; nor a
-    notch below ``DEEP_FLOOR_MM``. Of the candidates, a notch mostly ringed by the view's held pixels is kept,
-    a sliver along the outline is not (_enclosed_parts)."""
+    opposite each other, is an opening: not returned; nor any rim of a view whose silhouette is right. A
+    notch below ``DEEP_FLOOR_MM`` is returned apart (``low``), only where the views that carve it do not see
+    it as bright as the lit paper (a shaded foot, not a cast shadow's paper seen lit). Of the candidates, a
+    notch mostly ringed by the view's held pixels is kept, a sliver along the outline is not (_enclosed_parts)."""
     from recon.silhouettes import DEEP_FLOOR_MM, _enclosed_parts, carved_deep_alone
 
     masks, Ts, K = _tunnelled_drum(36)
@@ -1344,7 +1345,8 @@ def test_a_notch_neighbouring_views_leave_out_is_found_a_tunnel_many_see_through
     assert masks[side][notch].all()
     for v in out:
         held[v] &= ~notch
-    got = carved_deep_alone(held, K, Ts, 60.0, 100.0)
+    got, low = carved_deep_alone(held, K, Ts, 60.0, 100.0)
+    assert not low.any()  # without ``lit``, nothing below the floor
     for v in out[1:-1] if n_out > 2 else out:  # the outer views of five carve little the others do not
         inner = notch & ~held[v]
         inner[:, right - 3:] = False  # the notch's mouth at the outline is a rim: it may stay open
@@ -1353,10 +1355,19 @@ def test_a_notch_neighbouring_views_leave_out_is_found_a_tunnel_many_see_through
     assert not (got[others] & ~held[others]).any()  # no rim, and not the tunnel seen from either end
     # rows 80..84: the rays meet the drum 8-14 mm up, under DEEP_FLOOR_MM (the camera is 40 mm up, 300 px focal)
     assert DEEP_FLOOR_MM >= 15.0
-    low = held.copy()
-    for v in out:
-        low[v, 80:85, right - 16:right + 1] = False
-    assert not carved_deep_alone(low, K, Ts, 60.0, 100.0)[side][80:85].any()
+    held_low = held.copy()
+    low_notch = np.zeros_like(notch)
+    low_notch[80:85, right - 16:right + 1] = True
+    held_low[out] &= ~low_notch
+    dark = np.zeros_like(held)
+    high, low = carved_deep_alone(held_low, K, Ts, 60.0, 100.0, lit=dark)
+    assert not high[side][80:85].any()
+    inner = low_notch & ~held_low[side]
+    inner[:, right - 3:] = False
+    assert low[side][inner].mean() > 0.8, low[side][inner].mean()
+    assert not (low[others] & ~held_low[others]).any()
+    high, low = carved_deep_alone(held_low, K, Ts, 60.0, 100.0, lit=~dark)  # seen lit: a cast shadow's paper
+    assert not high[side][80:85].any() and not low.any()
     sliver = np.zeros_like(notch)
     sliver[30:40, right + 1:right + 3] = True  # two columns beside the outline, above the notch
     kept = _enclosed_parts(notch | sliver, held[side])
