@@ -96,11 +96,10 @@ neighbouring views, carved hollows through the body); free space shows in
 the silhouettes from both sides of the turn. Lower down, where a cast
 shadow's skirt is carved by the views that see the paper lit, such a notch
 counts only in pixels darker than the lit paper, doubtful or not, and only
-as large as a foot (a white
-teapot's shaded foot on a light wall, 20 deg up: three neighbouring views
-took it for its own shadow). Then, where the hull carved with
-all views leaves a hole in a view's mask with no voxel behind it, the voxels
-on its rays that a sixth of the views or fewer carve are given back to the
+as large as a foot (a white teapot's shaded foot on a light wall, 20 deg
+up: three neighbouring views took it for its own shadow). Then, where the
+hull carved with all views leaves a hole in a view's mask with no voxel
+behind it, the voxels on its rays that a sixth of the views or fewer carve are given back to the
 views that carved them (:func:`explained_back`: a white plinth's top, taken
 for the paper by views on both sides of the turn).
 These rules grow by whole pixels, and the pixel past an edge blends both
@@ -478,9 +477,9 @@ def carved_deep_alone(held: np.ndarray, K: np.ndarray, T_cam_table: np.ndarray, 
     into ``low`` where the view does not see them lit. A white object's shaded foot has its own shadow's grey
     on the paper; a view that took it for the shadow left out a part that the other views hold (a white
     teapot on a light wall, 20 deg up: its shaded foot in three neighbouring views of 35, hollowed 4 mm deep
-    under the belly on their side; 1.12 -> 0.94 % of the diagonal given back). The
-    caller keeps of these the doubtful pixels (of ``low``: all, in parts of at least ``DEEP_LOW_SHARE`` of the
-    view's mask, a foot and not the sliver of shaded paper under a belly) in parts mostly ringed by what the view holds
+    under the belly on their side; 1.12 -> 0.94 % of the diagonal given back). The caller keeps of these the
+    doubtful pixels (of ``low``: all, in parts of at least ``DEEP_LOW_SHARE`` of the view's mask, a foot and not
+    the sliver of shaded paper under a belly) in parts mostly ringed by what the view holds
     (:func:`_enclosed_parts`): beside a white box's top, slivers along the outline through the roof the other
     views leave over it (carved later: ``recon.faces``) were held as well.
 
