@@ -163,18 +163,21 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
                         f"{MIN_VIEWS}; rejected: {listed}{more}")
     names = [names[i] for i in keep]
     images_rgb = [images_rgb[i] for i in keep]
-    masks, Ts = carved.silhouettes.masks[keep], Ts[keep]
-    if opts.masks_dir is None:  # automatic silhouettes: the cast shadow they held, where every view held some
-        from recon.shadows import SKIRT_MM, carve_cast_shadows
+    masks, Ts, unknown = carved.silhouettes.masks[keep], Ts[keep], carved.silhouettes.unknown[keep]
 
+    def hull_note(note: str) -> None:  # on screen and in the summary's working-volume notes
+        progress.note(f"hull: {note}")
+        carved.report.setdefault("notes", []).append(note)
+
+    from recon.shadows import GUARD_DEPTH_MM, SKIRT_MM, carve_cast_shadows
+
+    if opts.masks_dir is None:  # automatic silhouettes: the cast shadow they held, where every view held some
         with progress.stage("cast shadows"):
-            hull, skirt = carve_cast_shadows(hull, images_rgb, masks, carved.silhouettes.unknown[keep], K, Ts)
+            hull, skirt = carve_cast_shadows(hull, images_rgb, masks, unknown, K, Ts)
         if skirt is not None:
-            note = (f"a cast shadow ({skirt.ratio:.2f} of the lit paper's grey, seen in {skirt.views} views) held in "
-                    f"the silhouettes: the skirt it left within {SKIRT_MM:.0f} mm of the table carved "
-                    f"({hull_stage.volume_text(skirt.volume_mm3)})")
-            progress.note(f"hull: {note}")
-            carved.report.setdefault("notes", []).append(note)
+            hull_note(f"a cast shadow ({skirt.ratio:.2f} of the lit paper's grey, seen in {skirt.views} views) held "
+                      f"in the silhouettes: the skirt it left within {SKIRT_MM:.0f} mm of the table carved "
+                      f"({hull_stage.volume_text(skirt.volume_mm3)})")
     from recon.faces import carve_above_faces, same_top, sweep
 
     with progress.stage("flat tops"):  # the roof no silhouette carves over a plinth's or a box's top
@@ -188,32 +191,24 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
         else:
             same[1] += mm3
     for face, mm3 in tops:
-        note = (f"a flat top {face.height_mm:.1f} mm above the table ({face.area_mm2:.0f} mm²): the roof the "
-                f"silhouettes leave over it carved ({hull_stage.volume_text(mm3)})")
-        progress.note(f"hull: {note}")
-        carved.report.setdefault("notes", []).append(note)
+        hull_note(f"a flat top {face.height_mm:.1f} mm above the table ({face.area_mm2:.0f} mm²): the roof the "
+                  f"silhouettes leave over it carved ({hull_stage.volume_text(mm3)})")
     if roofs:
         from recon.faces import carve_under_slabs
 
         with progress.stage("under slabs"):  # the wedge the silhouettes leave under a seat, which no view sees
             hull, unders = carve_under_slabs(hull, [face for face, _ in roofs], masks, K, Ts)
         for slab, mm3 in unders:
-            note = (f"a slab under the flat top {slab.top.height_mm:.1f} mm above the table, its underside at "
-                    f"{slab.underside_mm:.1f} mm: the space under it that no view sees, between what the views "
-                    f"do see there, carved ({hull_stage.volume_text(mm3)})")
-            progress.note(f"hull: {note}")
-            carved.report.setdefault("notes", []).append(note)
+            hull_note(f"a slab under the flat top {slab.top.height_mm:.1f} mm above the table, its underside at "
+                      f"{slab.underside_mm:.1f} mm: the space under it that no view sees, between what the views "
+                      f"do see there, carved ({hull_stage.volume_text(mm3)})")
         if unders and opts.masks_dir is None:  # the skirt under the slab, seen now that the wedge over it is gone
-            from recon.shadows import GUARD_DEPTH_MM, SKIRT_MM, carve_cast_shadows
-
             with progress.stage("cast shadows"):
-                hull, skirt = carve_cast_shadows(hull, images_rgb, masks, carved.silhouettes.unknown[keep], K, Ts,
+                hull, skirt = carve_cast_shadows(hull, images_rgb, masks, unknown, K, Ts,
                                                  guard_depth_mm=GUARD_DEPTH_MM)
             if skirt is not None:
-                note = (f"under the slab, the cast shadow's skirt within {SKIRT_MM:.0f} mm of the table carved "
-                        f"({hull_stage.volume_text(skirt.volume_mm3)})")
-                progress.note(f"hull: {note}")
-                carved.report.setdefault("notes", []).append(note)
+                hull_note(f"under the slab, the cast shadow's skirt within {SKIRT_MM:.0f} mm of the table carved "
+                          f"({hull_stage.volume_text(skirt.volume_mm3)})")
 
     from recon.sides import flatten_sides
 
@@ -221,10 +216,8 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
         hull, sides = flatten_sides(hull, images_rgb, masks, K, Ts)
     if sides:
         lo, hi = min(s.lo_mm for s in sides), max(s.hi_mm for s in sides)
-        note = (f"flat sides between corners from {lo:.1f} to {hi:.1f} mm above the table: the tent the silhouettes "
-                f"leave over them carved ({hull_stage.volume_text(sum(s.volume_mm3 for s in sides))})")
-        progress.note(f"hull: {note}")
-        carved.report.setdefault("notes", []).append(note)
+        hull_note(f"flat sides between corners from {lo:.1f} to {hi:.1f} mm above the table: the tent the "
+                  f"silhouettes leave over them carved ({hull_stage.volume_text(sum(s.volume_mm3 for s in sides))})")
 
     from recon.meshing import clip_to_hull, mesh_from_hull
 
