@@ -44,7 +44,8 @@ from .edges import conic_samples, find_stroke_edges, line_conic_offsets
 from .target import TargetSpec
 from .types import CalibrationError, EdgePoints, RingConics, TargetObservation
 
-__all__ = ["detect_rings", "pencil_ratio", "edge_conic", "grey_image", "coarse_ellipses", "COARSE_SIZE_PX"]
+__all__ = ["detect_rings", "detect_rings_near", "pencil_ratio", "edge_conic", "grey_image", "coarse_ellipses",
+           "COARSE_SIZE_PX"]
 
 log = logging.getLogger(__name__)
 
@@ -303,6 +304,23 @@ def detect_rings(image, spec: TargetSpec, *, principal_point_px=None,
         raise CalibrationError(f"{first_error} ({hint})")
     assert first_error is not None  # every factor either returned or failed with a CalibrationError
     raise first_error
+
+
+def detect_rings_near(image, spec: TargetSpec, C_outer: np.ndarray, C_inner: np.ndarray, *,
+                      edge_spacing_px: float = 2.0, gamma: float = 2.2) -> TargetObservation:
+    """The rings' edges searched where they are expected: around the centre-line conics ``C_outer``,
+    ``C_inner`` (pixels; e.g. where the other frames of a turntable sequence put them).
+
+    For a frame in which the coarse search (``detect_rings``, step 1) failed,
+    typically because the object hides much of the inner ring. The fine search
+    and the pencil tests are ``detect_rings``'s (steps 4), so a wrong prediction
+    or a target that is not there raises ``CalibrationError`` as it does.
+    """
+    grey = grey_image(image)
+    if not edge_spacing_px > 0:
+        raise ValueError(f"edge_spacing_px must be positive, got {edge_spacing_px}")
+    return _fine(grey, normalize_conic(np.asarray(C_outer, float)), normalize_conic(np.asarray(C_inner, float)),
+                 spec, edge_spacing_px, gamma)
 
 
 def _ratio_hint(rings: list[tuple[np.ndarray, float]], spec: TargetSpec) -> str:

@@ -105,6 +105,7 @@ __all__ = [
     "FitStep",
     "FitReport",
     "marks_angle_reader",
+    "expected_pose",
     "rot_y",
     "MAX_STD",
     "TURN_SIGN",
@@ -133,6 +134,38 @@ def marks_angle_reader(images: Sequence[np.ndarray | None], spec: TargetSpec,
         return align_pose_to_marks(T, a.angle_deg), float(a.std_deg)
 
     return read
+
+
+# --------------------------------------------------------------------------- a frame between others
+def expected_pose(frames: Sequence[FramePose], k: int) -> np.ndarray | None:
+    """Frame ``k``'s ``T_cam_table`` as a fixed camera and a turning table predict it from the
+    calibrated frames nearest it in the sequence (None with fewer than two).
+
+    Two frames ``a``, ``b`` differ by a turn about the axis: in table
+    coordinates ``M = inv(T_a) T_b`` is a rotation by ``phi`` about +Y around the
+    axis point ``p`` (``(I - R) p = t`` in X, Z). Frame ``k`` gets the fraction
+    ``s = (k - a) / (b - a)`` of that turn (extrapolated before the first and
+    after the last): right for an even step, and the rings it is meant to find
+    do not depend on the angle at all when the pattern is centred on the axis.
+    """
+    ok = [i for i, f in enumerate(frames) if f.ok]
+    if len(ok) < 2:
+        return None
+    lo, hi = [i for i in ok if i < k], [i for i in ok if i > k]
+    a, b = (lo[-1], hi[0]) if lo and hi else ((hi[0], hi[1]) if len(hi) >= 2 else (lo[-2], lo[-1]))
+    Ta = np.asarray(frames[a].T_cam_table, float)
+    M = np.linalg.inv(Ta) @ np.asarray(frames[b].T_cam_table, float)
+    phi, s = yaw_of(M[:3, :3]), (k - a) / (b - a)
+    R = rot_y(s * phi)
+    if abs(phi) < 1e-6:
+        t = s * M[:3, 3]
+    else:
+        xz = np.linalg.solve(np.eye(2) - M[:3, :3][np.ix_((0, 2), (0, 2))], M[(0, 2), 3])
+        p = np.array([xz[0], 0.0, xz[1]])
+        t = p - R @ p
+    step = np.eye(4)
+    step[:3, :3], step[:3, 3] = R, t
+    return Ta @ step
 
 
 # --------------------------------------------------------------------------- per-frame stage

@@ -17,6 +17,7 @@ import pytest
 import calib.sequence as cs
 import calib.sequence_model as sm
 from calib.camera import camera_centre_table, circle_points_table, look_at, make_T, project_points
+from calib.conics import conic_center
 from calib.distortion import distort_px
 from calib.target import TargetSpec
 from calib.types import CalibrationError, EdgePoints, Intrinsics, TargetObservation
@@ -335,6 +336,62 @@ def test_rendered_turntable_sequence_end_to_end(tmp_path, capsys):
     assert np.degrees(err).max() < 0.3
     assert np.max(centre_errors_mm(seq, Ts)) < 3.0
 
+
+
+def test_expected_pose_predicts_a_frame_between_and_before_the_calibrated_ones():
+    from calib.types import FramePose
+
+    rng = np.random.default_rng(21)
+    _, _, Ts = turntable_truth(rng, n=8, step=30.0, offset=(7.0, -4.0))  # paper far off the axis
+    lost = {0, 3, 4}
+    frames = [FramePose(image=f"f{k}", angle_deg=30.0 * k, T_cam_table=T, status="lost" if k in lost else "ok")
+              for k, T in enumerate(Ts)]
+    for k in lost:  # between two (3 and 4: two steps apart), and before the first (extrapolated)
+        T = cs.expected_pose(frames, k)
+        assert T is not None
+        assert np.allclose(T, Ts[k], atol=1e-9), k
+    one = [fr if k == 5 else FramePose(fr.image, fr.angle_deg, fr.T_cam_table, status="lost")
+           for k, fr in enumerate(frames)]
+    assert cs.expected_pose(one, 2) is None
+
+
+def test_a_frame_the_coarse_search_missed_is_found_where_the_others_put_its_rings():
+    """The frame whose rings the first search missed (here: its observation thrown away, as the object
+    hiding the inner ring does) is searched again on the reduced work image, mapped back to full
+    pixels and calibrated with the rest; a frame without the target stays out, with both reasons."""
+    import cv2
+    from synthetic_images import render_target_photo
+
+    from turntable.stages.calibration import calibrate_detected, detect_all
+    from turntable.worksize import scale_matrix
+
+    rng = np.random.default_rng(22)
+    size, work, f = (800, 600), (400, 300), 950.0
+    K = np.array([[f, 0, (size[0] - 1) / 2], [0, f, (size[1] - 1) / 2], [0, 0, 1.0]])
+    T_cam_axis = look_at(camera_position(35.0, 0.0, 420.0), np.zeros(3))
+    d = make_T(np.eye(3), np.array([9.0, 0.0, -6.0]))  # the paper off the axis: the rings move as it turns
+    Ts = [T_cam_axis @ make_T(cs.rot_y(math.radians(40.0 * k)), np.zeros(3)) @ d for k in range(6)]
+    photos = [render_target_photo(SPEC, K, T, size, rng=rng).image for T in Ts]
+    photos[4] = np.full_like(photos[4], 120)  # no target at all
+    names = [f"frame_{k}.png" for k in range(6)]
+    obs, failures = detect_all([(n, p, "") for n, p in zip(names, photos, strict=True)], SPEC)
+    assert obs[2] is not None and obs[4] is None
+    full_obs2 = obs[2]
+    obs[2], failures[2] = None, "radius ratio 1.32 does not match the target's 1.60"
+    S = scale_matrix(size, work)
+    small = [cv2.resize(p, work, interpolation=cv2.INTER_AREA) for p in photos]
+    out: list = []
+    seq = calibrate_detected(obs, failures, names, small, SPEC, marks_map=S, observations_out=out)
+    assert seq.mode == "turntable"
+    assert seq.frames[2].ok and not seq.frames[4].ok
+    assert "radius ratio" not in seq.frames[2].status
+    assert "no ring found" in seq.frames[4].status and "not found either where" in seq.frames[4].status
+    assert "frame_2.png" in seq.diagnostics.mode_reason
+    # the rings found on the half-size image, in full-image pixels, are where the full-size search put them
+    for C_new, C_old in ((out[2].conics.outer, full_obs2.conics.outer), (out[2].conics.inner, full_obs2.conics.inner)):
+        assert np.linalg.norm(conic_center(C_new) - conic_center(C_old)) < 0.5
+    assert (out[2].width, out[2].height) == size
+    assert np.max(centre_errors_mm(seq, Ts)) < 3.0
 
 
 def test_a_frame_that_does_not_fit_the_shared_camera_is_dropped(monkeypatch):

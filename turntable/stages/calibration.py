@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from calib.target import TargetSpec
-from calib.types import CalibrationError, Intrinsics, SequenceCalibration, TargetObservation
+from calib.types import CalibrationError, Intrinsics, RingConics, SequenceCalibration, TargetObservation
 
 from ..errors import UserError
 from ..images import read_image
@@ -24,7 +24,7 @@ from ..worksize import WorkSize
 log = logging.getLogger(__name__)
 
 __all__ = ["calibrate_folder", "calibrate_stream", "calibrate_frames", "calibrate_detected", "detect_all",
-           "detect_and_reduce", "DetectedFrames", "scaled_marks_reader"]
+           "detect_and_reduce", "DetectedFrames", "scaled_marks_reader", "look_again"]
 
 
 def detect_all(frames: Sequence[tuple[str, np.ndarray | None, str]], spec: TargetSpec,
@@ -150,12 +150,10 @@ def calibrate_frames(frames: Sequence[tuple[str, np.ndarray | None, str]], spec:
     tick2 = (lambda done, total: progress(n + done, 2 * n)) if progress is not None else None
     pp = intrinsics.principal_point_px if intrinsics is not None else principal_point_px
     obs, failures = detect_all(frames, spec, principal_point_px=pp, progress=tick)
-    if observations_out is not None:
-        observations_out.extend(obs)
     return calibrate_detected(obs, failures, [f[0] for f in frames], [img for _, img, _ in frames], spec,
                               step_deg=step_deg, intrinsics=intrinsics, mode=mode,
                               principal_point_px=principal_point_px, distortion=distortion, progress=tick2,
-                              fit_progress=fit_progress)
+                              fit_progress=fit_progress, observations_out=observations_out)
 
 
 def calibrate_detected(observations: Sequence[TargetObservation | None], failures: Sequence[str],
@@ -163,7 +161,7 @@ def calibrate_detected(observations: Sequence[TargetObservation | None], failure
                        marks_map: np.ndarray | None = None, step_deg: float | None = None,
                        intrinsics: Intrinsics | None = None, mode: str = "auto", principal_point_px=None,
                        distortion: str = "auto", progress: Callable[[int, int], None] | None = None,
-                       fit_progress=None) -> SequenceCalibration:
+                       fit_progress=None, observations_out: list | None = None) -> SequenceCalibration:
     """The sequence calibration from ring observations already made (:func:`detect_all`).
 
     ``images`` are what the angle marks are read from: the photos, or copies
@@ -172,21 +170,97 @@ def calibrate_detected(observations: Sequence[TargetObservation | None], failure
     with the camera matrix ``marks_map @ K``. The observations are always in
     full-image pixels. ``progress`` is told each frame's single-view calibration,
     ``fit_progress`` each iteration of the joint fit (:class:`calib.sequence.FitStep`).
-    Raises ``UserError`` when no frame can be calibrated.
+    In turntable mode the rings of frames without an observation are searched
+    again where the others put them (:func:`look_again`) and, where found, the
+    sequence is calibrated again with them; ``observations_out`` receives the
+    observations so completed. Raises ``UserError`` when no frame can be calibrated.
     """
     from calib.sequence import calibrate_sequence
 
     reader = None
     if marks_map is not None:
         reader = scaled_marks_reader(images, spec, marks_map, intrinsics.dist if intrinsics is not None else None)
-    try:
-        return calibrate_sequence(observations, None if reader is not None else list(images), spec,
-                                  names=list(names), failures=list(failures), step_deg=step_deg,
-                                  intrinsics=intrinsics, mode=mode, principal_point_px=principal_point_px,
-                                  distortion=distortion, angle_reader=reader, progress=progress,
-                                  fit_progress=fit_progress)
-    except CalibrationError as exc:
-        raise UserError(str(exc)) from None
+    observations, failures = list(observations), list(failures)
+
+    def run(tick) -> SequenceCalibration:
+        try:
+            return calibrate_sequence(observations, None if reader is not None else list(images), spec,
+                                      names=list(names), failures=failures, step_deg=step_deg,
+                                      intrinsics=intrinsics, mode=mode, principal_point_px=principal_point_px,
+                                      distortion=distortion, angle_reader=reader, progress=tick,
+                                      fit_progress=fit_progress)
+        except CalibrationError as exc:
+            raise UserError(str(exc)) from None
+
+    seq = run(progress)
+    found = look_again(seq, observations, failures, images, spec, marks_map) if seq.mode == "turntable" else []
+    if found:
+        seq = run(None)
+        d = seq.diagnostics
+        if d is not None:
+            why = (f"the rings of {len(found)} frame(s) ({', '.join(names[k] for k in found[:5])}) were found by "
+                   f"searching where the frames beside them put them")
+            seq = replace(seq, diagnostics=replace(d, mode_reason=f"{d.mode_reason}; {why}"))
+    if observations_out is not None:
+        observations_out.extend(observations)
+    return seq
+
+
+def look_again(seq: SequenceCalibration, observations: list, failures: list[str],
+               images: Sequence[np.ndarray | None], spec: TargetSpec, marks_map: np.ndarray | None = None) -> list[int]:
+    """Search the rings of each frame that has none where a fixed camera puts them, and return those found.
+
+    A turntable sequence's frames all see the rings in nearly the same place
+    (exactly, when the pattern is centred on the axis): the pose the calibrated
+    frames beside it predict (:func:`calib.sequence.expected_pose`) gives the
+    centre-line conics, and :func:`calib.rings.detect_rings_near` searches
+    around them, on ``images[k]`` (full-image pixels mapped by ``marks_map``,
+    or the photo itself). This recovers frames whose coarse ellipse search was
+    misled, mostly by an object hiding much of the inner ring. ``observations``
+    and ``failures`` are updated in place; a frame still not found keeps its
+    reason, with the second search's added.
+    """
+    from calib.camera import circle_points_table, project_points
+    from calib.conics import fit_conic, normalize_conic
+    from calib.distortion import distort_px
+    from calib.rings import detect_rings_near
+    from calib.sequence import expected_pose
+
+    S = np.eye(3) if marks_map is None else np.asarray(marks_map, np.float64)
+    Sinv = np.linalg.inv(S)
+    K, dist = seq.intrinsics.K, seq.intrinsics.dist
+    found: list[int] = []
+    for k, (obs, img) in enumerate(zip(observations, images, strict=True)):
+        if obs is not None or img is None:
+            continue
+        T = expected_pose(seq.frames, k)
+        if T is None:
+            return found
+        conics = []
+        for r in (spec.r_outer_mm, spec.r_inner_mm):
+            uv = project_points(K, T, circle_points_table(r, 180))
+            if dist is not None and np.any(dist):
+                uv = distort_px(uv, K, dist)
+            conics.append(fit_conic(uv @ S[:2, :2].T + S[:2, 2]))
+        try:
+            near = detect_rings_near(img, spec, conics[0], conics[1])
+        except (CalibrationError, ValueError) as exc:
+            failures[k] = f"{failures[k]}; not found either where the frames beside it put the rings: {exc}"
+            continue
+        edges = tuple(replace(e, uv_px=e.uv_px @ Sinv[:2, :2].T + Sinv[:2, 2]) for e in near.edges)
+        c = near.conics
+        if c is not None:  # work pixels -> full-image pixels: C_full = S^T C S
+            def full(C):
+                return None if C is None else normalize_conic(S.T @ C @ S)
+
+            c = RingConics(outer=full(c.outer), inner=full(c.inner), outer_plus=full(c.outer_plus),
+                           outer_minus=full(c.outer_minus), inner_plus=full(c.inner_plus),
+                           inner_minus=full(c.inner_minus))
+        observations[k] = replace(near, edges=edges, conics=c, width=seq.intrinsics.width,
+                                  height=seq.intrinsics.height)
+        failures[k] = ""
+        found.append(k)
+    return found
 
 
 def scaled_marks_reader(images: Sequence[np.ndarray | None], spec: TargetSpec, S: np.ndarray,

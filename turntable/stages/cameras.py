@@ -56,14 +56,20 @@ def calibrate(loaded, opts: ReconstructOptions, progress: Progress, key: str,
         from ..intrinsics_io import read_opencv_intrinsics
 
         intr = read_opencv_intrinsics(opts.intrinsics)
-    observations = loaded.observations
+    observations: list = []
     with progress.stage("cameras") as tick:
         try:  # the angle marks are read on the work images (they are sampled in millimetres)
-            seq = calibrate_detected(observations, loaded.failures, loaded.names, loaded.images, opts.spec,
+            seq = calibrate_detected(loaded.observations, loaded.failures, loaded.names, loaded.images, opts.spec,
                                      marks_map=loaded.work.S, step_deg=opts.step_deg, intrinsics=intr,
-                                     progress=tick, fit_progress=fit_reporter(progress, "cameras: joint fit"))
+                                     progress=tick, fit_progress=fit_reporter(progress, "cameras: joint fit"),
+                                     observations_out=observations)
         except UserError as exc:
             raise UserError(f"{opts.input}: {exc}") from None
+    again = [n for n, o, o0 in zip(loaded.names, observations, loaded.observations, strict=True)
+             if o is not None and o0 is None]
+    if again:
+        progress.note(f"cameras: rings of {len(again)} frame(s) ({', '.join(again[:5])}) found by searching "
+                      f"where the frames beside them put them (the first search was misled)")
     diagnostics = seq.diagnostics if seq.diagnostics is not None else SequenceDiagnostics()
     for warning in diagnostics.warnings:
         progress.note(f"cameras: WARNING: {warning}")
