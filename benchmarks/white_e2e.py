@@ -159,8 +159,8 @@ def _synth_key(args: list[str]) -> str:
 def _render(work: Path, obj: str, backdrop: str, seed: int, size: str, albedo: str,
             extra: dict[str, float]) -> Path:
     """The sequence for these settings in WORK_DIR, rendered unless a render of the same synth and arguments is
-    there (``render_key.txt``). ``extra``: further synth options by name (``elevation-deg``, ``blur``, ``noise``)
-    where not the synth's default; they name the folder too."""
+    there (``render_key.txt``). ``extra``: further synth options by name (``elevation-deg``, ``blur``, ``noise``,
+    ``frames``) where not the default; they name the folder too."""
     w, h = (int(v) for v in size.split("x"))
     tail = "".join(f"_{k.split('-')[0]}{v:g}" for k, v in extra.items())
     d = work / f"{obj}_{backdrop}_s{seed}_{size}_{albedo.replace(',', '-')}{tail}"
@@ -170,7 +170,8 @@ def _render(work: Path, obj: str, backdrop: str, seed: int, size: str, albedo: s
         if not Path(source).exists():
             _sdf_mesh(obj, Path(source))
     args = ["synth", str(d), "--object", source, "--albedo", albedo, "--backdrop", backdrop,
-            "--size", f"{w}x{h}", "--focal-px", f"{1500.0 * w / 1280:g}", "--frames", "36", "--seed", str(seed),
+            "--size", f"{w}x{h}", "--focal-px", f"{1500.0 * w / 1280:g}",
+            *(() if "frames" in extra else ("--frames", "36")), "--seed", str(seed),
             *(a for k, v in extra.items() for a in (f"--{k}", f"{v:g}")), "--overwrite"]
     key = _synth_key(args)
     stamp = d / "render_key.txt"
@@ -195,10 +196,11 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--elevation", type=float, default=None, help="camera elevation, degrees (synth default: 30)")
     ap.add_argument("--blur", type=float, default=None, help="optical blur sigma, pixels (synth default: 0)")
     ap.add_argument("--noise", type=float, default=None, help="sensor noise at mid-grey, DN (synth default: 2)")
+    ap.add_argument("--frames", type=int, default=None, help="frames in the turn (default here: 36)")
     ap.add_argument("--no-ideal", action="store_true", help="skip the run with the true cameras and silhouettes")
     args = ap.parse_args(argv)
-    extra = {k: v for k, v in (("elevation-deg", args.elevation), ("blur", args.blur), ("noise", args.noise))
-             if v is not None}
+    extra = {k: v for k, v in (("elevation-deg", args.elevation), ("blur", args.blur), ("noise", args.noise),
+                               ("frames", args.frames)) if v is not None}
     work = Path(args.work)
     if work.exists() and not work.is_dir():
         ap.error(f"WORK_DIR {work} exists and is not a folder")
