@@ -59,6 +59,7 @@ import numpy as np
 
 from calib.camera import as_K, as_poses
 
+from .image_edges import EDGE_HI, EDGE_LO, edges, smoothed_grey
 from .types import VoxelHull
 
 __all__ = ["carve_hull", "silhouette_sdf_px", "fill_enclosed", "held_past_edges", "outer_band_px",
@@ -106,8 +107,6 @@ def memory_available_bytes() -> int | None:
 
 OUTER_BAND = 0.0025  # a view's silhouette outline is doubtful within this share of the image diagonal ...
 OUTER_BAND_MIN_PX = 2.0  # ... and this many pixels at least (4 px at 1280 x 960, 2 px at 640 x 480)
-EDGE_LO, EDGE_HI = 8, 16  # Canny's thresholds on the grey image (Gaussian sigma 1): a white box's lit face on the
-# lit paper shows an edge of 30-50 grey levels; the paper's grain at 4 / 8 is edges everywhere
 
 
 def outer_band_px(width: int, height: int) -> float:
@@ -130,17 +129,18 @@ def fill_enclosed(mask: np.ndarray, bay_px: float = 0.0) -> np.ndarray:
     return ndimage.binary_fill_holes(m)  # the background 4-connected (its default structure)
 
 
-def held_past_edges(held: np.ndarray, image_rgb: np.ndarray, band_px: float) -> np.ndarray:
+def held_past_edges(held: np.ndarray, image_rgb: np.ndarray, band_px: float,
+                    thresholds: tuple[float, float] = (EDGE_LO, EDGE_HI)) -> np.ndarray:
     """(H, W) bool: ``held`` grown by up to ``band_px`` pixels (4-connected steps) without crossing an edge of
-    the image (Canny, :data:`EDGE_LO` / :data:`EDGE_HI`); the edge pixels it reaches are held too.
+    the image (:func:`recon.image_edges.edges` at ``thresholds``, the sequence's
+    :func:`recon.image_edges.edge_thresholds`); the edge pixels it reaches are held too.
 
     Where a silhouette's outline stops short of the object's (a pixel or two inside it: the edge is still
     ahead), this takes the rest up to the edge; where the outline sits on an edge, or stops on an edge
     beyond the object (doubtful paper ending at the target's printed ring), nothing is added: past it is
     the background the view sees round the object (:func:`carve_hull`'s ``outer_masks``).
     """
-    grey = cv2.GaussianBlur(cv2.cvtColor(np.asarray(image_rgb), cv2.COLOR_RGB2GRAY), (0, 0), 1.0)
-    edge = cv2.Canny(grey, EDGE_LO, EDGE_HI) > 0
+    edge = edges(smoothed_grey(image_rgb), thresholds)
     held = np.asarray(held, bool)
     free = ~edge
     reach = held & free

@@ -51,6 +51,7 @@ from scipy import ndimage
 
 from calib.camera import camera_centre_table, plane_homography, project_points
 
+from .image_edges import edge_thresholds, edges, smoothed_grey
 from .silhouette_doubt import channel_max
 from .types import VoxelHull
 
@@ -111,9 +112,8 @@ def _warp(img, M, size, nearest=False) -> np.ndarray:
     return cv2.warpPerspective(img, M, size, flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
-def _edges(img_rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    grey = cv2.GaussianBlur(cv2.cvtColor(img_rgb, cv2.COLOR_RGB2GRAY), (0, 0), 1.0)
-    e = cv2.Canny(grey, 8, 16)
+def _edges(img_rgb: np.ndarray, mask: np.ndarray, thresholds: tuple[float, float]) -> np.ndarray:
+    e = edges(smoothed_grey(img_rgb), thresholds).astype(np.uint8)
     near = cv2.dilate(mask.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
     return (cv2.dilate(e, np.ones((3, 3), np.uint8)) > 0) & near
 
@@ -230,9 +230,10 @@ def sweep(images_rgb, masks, K, Ts, hull: VoxelHull) -> Sweep | None:
     shape = (int(math.ceil(depth * px)) + 1, int(math.ceil(width * px)) + 1)
     step = max(STEP_MM, (hi[1] + PEAK_OFFSET_MM) / MAX_HEIGHTS)
     heights = np.arange(MIN_HEIGHT_MM - PEAK_OFFSET_MM, hi[1] + PEAK_OFFSET_MM, step)
-    edges = [_edges(im, m).astype(np.uint8) for im, m in zip(images_rgb, masks, strict=True)]
+    thresholds = edge_thresholds(images_rgb, Ts)
+    views = [_edges(im, m, thresholds).astype(np.uint8) for im, m in zip(images_rgb, masks, strict=True)]
     sections = _sections(hull, heights, x0, z0, shape, px)
-    return Sweep(heights, float(step), sections, edges, np.asarray(K, float), np.asarray(Ts, float), float(x0),
+    return Sweep(heights, float(step), sections, views, np.asarray(K, float), np.asarray(Ts, float), float(x0),
                  float(z0), float(px), shape)
 
 

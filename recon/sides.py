@@ -35,6 +35,7 @@ from scipy import ndimage
 
 from calib.camera import camera_centre_table, project_points
 
+from .image_edges import edge_thresholds, edges, smoothed_grey
 from .types import VoxelHull
 
 __all__ = ["Side", "flatten_sides"]
@@ -70,10 +71,10 @@ class Side:
     volume_mm3: float
 
 
-def _edge_maps(greys: list[np.ndarray]) -> list[np.ndarray]:
-    """Each view's edges (Canny on its smoothed grey), grown by ``EDGE_PX``."""
+def _edge_maps(greys: list[np.ndarray], thresholds: tuple[float, float]) -> list[np.ndarray]:
+    """Each view's edges (:func:`recon.image_edges.edges` of its smoothed grey), grown by ``EDGE_PX``."""
     k = np.ones((2 * EDGE_PX + 1,) * 2, np.uint8)
-    return [cv2.dilate(cv2.Canny(g, 8, 16), k) > 0 for g in greys]
+    return [cv2.dilate(edges(g, thresholds).astype(np.uint8), k) > 0 for g in greys]
 
 
 def _lookup(maps, K, Ts, pts) -> np.ndarray:
@@ -239,8 +240,8 @@ def flatten_sides(hull: VoxelHull, images_rgb, masks, K, Ts) -> tuple[VoxelHull,
     o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
     Ts = np.asarray(Ts, float)
     cams = camera_centre_table(Ts)
-    greys = [cv2.GaussianBlur(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY), (0, 0), 1.0) for im in images_rgb]
-    edges = _edge_maps(greys)
+    greys = [smoothed_grey(im) for im in images_rgb]
+    edge = _edge_maps(greys, edge_thresholds(images_rgb, Ts))
     grey = [g.astype(np.float32) for g in greys]
     need = CORNER_SHARE * len(Ts)
 
@@ -250,7 +251,7 @@ def flatten_sides(hull: VoxelHull, images_rgb, masks, K, Ts) -> tuple[VoxelHull,
     chords: dict[int, list[_Chord]] = {}
     for iy in range(inside.shape[1]):
         if h_of(iy) >= MIN_HEIGHT_MM and inside[:, iy, :].any():
-            chords[iy] = _chords(inside[:, iy, :], h_of(iy), o, v, edges, grey, K, Ts, cams, need)
+            chords[iy] = _chords(inside[:, iy, :], h_of(iy), o, v, edge, grey, K, Ts, cams, need)
     carved = np.zeros(inside.shape, bool)
     new = vals.copy()
     lowest = True

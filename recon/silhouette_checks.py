@@ -23,7 +23,7 @@ import numpy as np
 
 from calib.camera import camera_centre_table
 
-__all__ = ["frame_status", "camera_azimuths_deg", "fill_gaps", "EMPTY"]
+__all__ = ["frame_status", "camera_azimuths_deg", "camera_spread", "camera_still", "fill_gaps", "EMPTY", "CAMERA_STILL"]
 
 _MIN_AREA = 0.02  # a silhouette smaller than this fraction of the cylinder's image is "empty" ...
 _TYPICAL_SHARE = 0.75  # ... when also under this share of the sequence's median area (a thin object is small in all)
@@ -83,6 +83,24 @@ def camera_azimuths_deg(T_cam_table: np.ndarray) -> np.ndarray:
     """Angle (V,) degrees of each camera centre about the table +Y axis, ``atan2(Z, X)`` in the table frame."""
     C = camera_centre_table(np.asarray(T_cam_table, np.float64).reshape(-1, 4, 4))
     return np.degrees(np.arctan2(C[:, 2], C[:, 0]))
+
+
+CAMERA_STILL = 0.02  # the camera stays put: its centres' spread in height and in distance from the axis,
+# as a share of their mean distance from the table centre (real turntable sequences: <= 0.25 %)
+
+
+def camera_spread(T_cam_table: np.ndarray) -> tuple[float, float, float]:
+    """Seen from the table, the camera centres' spread (std, mm) in height and in distance from the axis, and
+    their mean distance from the table centre: a camera that stays put while the table turns spreads neither."""
+    C = camera_centre_table(np.asarray(T_cam_table, np.float64).reshape(-1, 4, 4))
+    return (float(C[:, 1].std()), float(np.hypot(C[:, 0], C[:, 2]).std()),
+            float(np.linalg.norm(C, axis=1).mean()))
+
+
+def camera_still(T_cam_table: np.ndarray) -> bool:
+    """Whether the camera stays put while the table turns (:func:`camera_spread` within ``CAMERA_STILL``)."""
+    dy, dr, d = camera_spread(T_cam_table)
+    return max(dy, dr) <= CAMERA_STILL * d
 
 
 def _circular_gaps(angles_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

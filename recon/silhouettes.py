@@ -136,7 +136,7 @@ from skimage.morphology import remove_small_objects
 from calib.camera import as_K, as_poses, camera_centre_table, project_points, values_at_points
 from calib.target import TargetSpec
 
-from .silhouette_checks import camera_azimuths_deg, fill_gaps, frame_status
+from .silhouette_checks import camera_azimuths_deg, camera_spread, camera_still, fill_gaps, frame_status
 from .silhouette_doubt import (
     Evidence,
     Plate,
@@ -248,10 +248,6 @@ def _check_inputs(images_rgb, K, T_cam_table):
     return imgs, as_K(K), as_poses(T_cam_table, imgs.shape[0])
 
 
-CAMERA_STILL = 0.02  # the camera stays put: its centres' spread in height and in distance from the axis,
-# as a share of their mean distance from the table centre (real turntable sequences: <= 0.25 %)
-
-
 def check_camera_still(T_cam_table: np.ndarray) -> None:
     """Raise ``ValueError`` when the camera moves between frames rather than the table turning under it.
 
@@ -264,17 +260,13 @@ def check_camera_still(T_cam_table: np.ndarray) -> None:
     carving) or wrong (a white vase: 20 of 36 frames rejected, the model 22 %
     of its diagonal off, exit 0).
     """
-    T = np.asarray(T_cam_table, np.float64)
-    if len(T) < 3:
+    if len(T_cam_table) < 3 or camera_still(T_cam_table):
         return
-    C = camera_centre_table(T)
-    d = float(np.linalg.norm(C, axis=1).mean())
-    dy, dr = float(C[:, 1].std()), float(np.hypot(C[:, 0], C[:, 2]).std())
-    if max(dy, dr) > CAMERA_STILL * d:
-        raise ValueError(
-            f"the camera moves between frames (seen from the table its height varies by {dy:.0f} mm and its "
-            f"distance from the axis by {dr:.0f} mm, std, at {d:.0f} mm): automatic silhouettes need a camera "
-            "that stays put while the table turns; give --masks")
+    dy, dr, d = camera_spread(T_cam_table)
+    raise ValueError(
+        f"the camera moves between frames (seen from the table its height varies by {dy:.0f} mm and its "
+        f"distance from the axis by {dr:.0f} mm, std, at {d:.0f} mm): automatic silhouettes need a camera "
+        "that stays put while the table turns; give --masks")
 
 
 SEQUENCE_DOUBT = 2  # this many frames conservative: judge every frame's doubt strictly

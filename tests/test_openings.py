@@ -25,14 +25,14 @@ K = np.array([[F_PX, 0.0, (W - 1) / 2], [0.0, F_PX, (H - 1) / 2], [0.0, 0.0, 1.0
 RIM_Y = 69.4  # the synth's cup (turntable.synth.objects): its rim's top, 3 mm walls, its inside down to 5 mm
 
 
-def _synth(folder, obj: str, seed: int = 3):
-    """A white (uniform off-white) ``obj`` rendered by the synth, 18 views, dark room; (images, masks, K, Ts,
-    hull, the true mesh) from its true cameras and silhouettes."""
+def _synth(folder, obj: str, seed: int = 3, noise: float = 2.0):
+    """A white (uniform off-white) ``obj`` rendered by the synth, 18 views, dark room, sensor noise ``noise`` DN;
+    (images, masks, K, Ts, hull, the true mesh) from its true cameras and silhouettes."""
     import cv2
     import trimesh
 
     make_sequence(folder, SynthOptions(object=obj, backdrop="dark", seed=seed, width=W, height=H, focal_px=F_PX,
-                                       frames=18, step_deg=20.0, albedo=(0.85, 0.84, 0.82)))
+                                       frames=18, step_deg=20.0, albedo=(0.85, 0.84, 0.82), noise=noise))
     seq = read_cameras(folder / "cameras_gt.json")
     images = [np.ascontiguousarray(cv2.imread(str(folder / f.image))[..., ::-1]) for f in seq.frames]
     masks = np.stack([cv2.imread(str(folder / "masks" / (Path(f.image).stem + ".png")), 0) > 127
@@ -93,6 +93,21 @@ def test_a_white_cups_rim_is_an_opening_and_its_inside_is_hollowed(cup_scene):
     before, after = _mesh(hull.values, hull), _mesh(values, hull)
     assert _chamfer_mm(after, truth) < 0.4 * _chamfer_mm(before, truth)
     assert 0.85 * truth.volume < mesh_stats(after).volume_mm3 < 1.15 * truth.volume
+
+
+def test_a_noisy_cameras_cup_is_an_opening_its_edges_over_the_noise(tmp_path, monkeypatch):
+    """Sensor noise of 4 DN: at Canny's fixed 8 / 16 the views agree by chance on edges inside the cup, outlined
+    as a knob's over its rim, and the opening was refused; over the noise the photos show
+    (:func:`recon.image_edges.edge_thresholds`) it is found at the rim."""
+    import recon.image_edges as ie
+
+    images, masks, K_, Ts, hull, _ = _synth(tmp_path, "cup", noise=4.0)
+    lo, hi = ie.edge_thresholds(images, Ts)
+    assert 9.0 < lo < ie.MAX_LO and hi == 2 * lo
+    found = find_openings(images, masks, K_, Ts, hull)
+    assert len(found) == 1 and abs(found[0].height_mm - RIM_Y) < 2.0
+    monkeypatch.setattr(ie, "NOISE_MULT", 0.0)  # the fixed thresholds
+    assert find_openings(images, masks, K_, Ts, hull) == []
 
 
 def test_an_evenly_lit_inside_is_an_opening_by_its_rim(tmp_path):

@@ -54,9 +54,10 @@ def carve_hull(masks, K, Ts, opts, cache, key, progress, vol, rejections: int | 
     outer = None
     if images is not None:  # automatic silhouettes: the background round the object carves alone
         from recon.carving import held_past_edges, outer_band_px
+        from recon.image_edges import edge_thresholds
 
-        band = outer_band_px(masks.shape[2], masks.shape[1])
-        outer = np.array([held_past_edges(m, im, band) for m, im in
+        band, thresholds = outer_band_px(masks.shape[2], masks.shape[1]), edge_thresholds(images, Ts)
+        outer = np.array([held_past_edges(m, im, band, thresholds) for m, im in
                           zip(masks if held is None else held, images, strict=True)])
     with progress.stage("carving") as tick:
         try:

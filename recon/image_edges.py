@@ -1,0 +1,73 @@
+"""The photos' edges that the hull's later stages read: Canny over the photos' own
+noise.
+
+Flat tops and openings (:mod:`recon.faces`, :mod:`recon.openings`), flat sides
+(:mod:`recon.sides`) and the silhouettes' growth up to the next edge
+(:func:`recon.carving.held_past_edges`) read each photo's edges: Canny's
+hysteresis on the Sobel gradient of its grey levels smoothed with a Gaussian of
+sigma 1 px. The thresholds, ``EDGE_LO`` / ``EDGE_HI`` = 8 / 16, are low: a white
+box's lit face on the lit paper shows an edge of 30-50 grey levels, a white
+cup's rim against its inside less (and the paper's grain at 4 / 8 is edges
+everywhere). The synth's photos (noise 2 DN, JPEG) keep their noise under them;
+a noisier camera's (4 DN) does not: Canny draws edges all over a plain white
+surface, the views agree on some of them by chance, and a white cup's inside
+looked outlined higher up, as under a knob (its opening refused, the inside left
+solid: 0.5 -> 1.9 % of its diagonal).
+
+So the thresholds rise with the noise, measured where it is alone. With a camera
+that stays put, two consecutive photos differ in the room by their noise only:
+the median over the image of the same gradient of their difference (over sqrt 2;
+the object and the print, which move, are less than half the image) is the
+noise's, and ``EDGE_LO`` becomes ``NOISE_MULT`` times it (the median of
+``NOISE_PAIRS`` pairs), at least 8 and at most ``MAX_LO``; ``EDGE_HI`` twice
+that. A camera that moves (hand-held, ``--masks``:
+:func:`recon.silhouette_checks.camera_still`) keeps 8 / 16.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+
+from .silhouette_checks import camera_still
+
+__all__ = ["EDGE_LO", "EDGE_HI", "edge_thresholds", "smoothed_grey", "edges"]
+
+EDGE_LO, EDGE_HI = 8.0, 16.0  # Canny's thresholds at the least
+NOISE_MULT = 2.6  # EDGE_LO over the noise's median gradient (the synth's photos: 2.3-3.0 -> 8; noise 4 DN: 4.2-5.0)
+MAX_LO = 16.0  # EDGE_LO at the most
+NOISE_PAIRS = 6  # consecutive pairs of photos the noise is measured on, spread over the sequence
+
+
+def smoothed_grey(image_rgb: np.ndarray) -> np.ndarray:
+    """(H, W) uint8: the grey levels of ``image_rgb`` (H, W, 3) smoothed with a Gaussian of sigma 1 px."""
+    return cv2.GaussianBlur(cv2.cvtColor(np.asarray(image_rgb), cv2.COLOR_RGB2GRAY), (0, 0), 1.0)
+
+
+def edges(grey: np.ndarray, thresholds: tuple[float, float] = (EDGE_LO, EDGE_HI)) -> np.ndarray:
+    """(H, W) bool: Canny's edges of ``grey`` (:func:`smoothed_grey`) at ``thresholds`` (:func:`edge_thresholds`)."""
+    return cv2.Canny(grey, float(thresholds[0]), float(thresholds[1])) > 0
+
+
+def _noise_gradient(a: np.ndarray, b: np.ndarray) -> float:
+    """The median over the image of the smoothed gradient (Canny's, L1) of two photos' difference over sqrt 2."""
+    def smooth(im):
+        return cv2.GaussianBlur(cv2.cvtColor(np.asarray(im), cv2.COLOR_RGB2GRAY).astype(np.float32), (0, 0), 1.0)
+
+    d = ((smooth(a) - smooth(b)) / np.sqrt(2.0)).astype(np.float32)
+    g = np.abs(cv2.Sobel(d, cv2.CV_32F, 1, 0)) + np.abs(cv2.Sobel(d, cv2.CV_32F, 0, 1))
+    return float(np.median(g))
+
+
+def edge_thresholds(images_rgb: Sequence[np.ndarray], T_cam_table: np.ndarray) -> tuple[float, float]:
+    """Canny's (low, high) thresholds for these photos (see the module's docstring): 8 / 16, higher for a noisy
+    camera that stays put."""
+    n = len(images_rgb)
+    if n < 2 or len(T_cam_table) != n or not camera_still(T_cam_table):
+        return EDGE_LO, EDGE_HI
+    starts = np.unique(np.linspace(0, n - 2, min(NOISE_PAIRS, n - 1)).round().astype(int))
+    noise = float(np.median([_noise_gradient(images_rgb[k], images_rgb[k + 1]) for k in starts]))
+    lo = float(np.clip(NOISE_MULT * noise, EDGE_LO, MAX_LO))
+    return lo, 2.0 * lo
