@@ -196,11 +196,16 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--elevation", type=float, default=None, help="camera elevation, degrees (synth default: 30)")
     ap.add_argument("--blur", type=float, default=None, help="optical blur sigma, pixels (synth default: 0)")
     ap.add_argument("--noise", type=float, default=None, help="sensor noise at mid-grey, DN (synth default: 2)")
-    ap.add_argument("--frames", type=int, default=None, help="frames in the turn (default here: 36)")
+    ap.add_argument("--frames", type=int, default=None,
+                    help="frames in the whole turn, 360 / FRAMES degrees apart (default here: 36, 10 degrees)")
     ap.add_argument("--no-ideal", action="store_true", help="skip the run with the true cameras and silhouettes")
     args = ap.parse_args(argv)
     extra = {k: v for k, v in (("elevation-deg", args.elevation), ("blur", args.blur), ("noise", args.noise),
                                ("frames", args.frames)) if v is not None}
+    if args.frames is not None:
+        if args.frames < 8:
+            ap.error(f"--frames {args.frames}: at least 8")
+        extra["step-deg"] = 360.0 / args.frames
     work = Path(args.work)
     if work.exists() and not work.is_dir():
         ap.error(f"WORK_DIR {work} exists and is not a folder")
