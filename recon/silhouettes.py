@@ -1158,7 +1158,8 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
     Parameters
     ----------
     images_rgb : (V, H, W, 3) uint8
-        Undistorted RGB frames.
+        Undistorted RGB frames (denoised first where the camera is noisy:
+        :func:`recon.image_edges.quieted`).
     K : (3, 3) float
         Shared intrinsics, pixels.
     T_cam_table : (V, 4, 4) float
@@ -1190,6 +1191,9 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
     imgs, K, T = _check_inputs(images_rgb, K, T_cam_table)
     check_camera_still(T)
     from .carving import largest_visible_height_mm
+    from .image_edges import quieted
+
+    imgs = quieted(imgs, T)  # a noisy camera's photos denoised (the outline kept sharp)
 
     V, H, W = imgs.shape[:3]
     if radius_mm is None and spec is None:

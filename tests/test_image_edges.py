@@ -42,3 +42,21 @@ def test_thresholds_rise_with_the_noise_of_a_still_camera_only():
     plain[55:66] = False
     assert at_lo[plain].mean() > 0.01 and over[plain].mean() < 0.002
     assert over[58:62].any(axis=0).mean() > 0.95
+
+
+def test_a_noisy_still_cameras_photos_are_denoised_for_the_silhouettes_others_untouched():
+    rng = np.random.default_rng(6)
+    Ts = _turntable_poses()
+    quiet = np.stack(_photos(rng, 1.0))
+    assert ie.quieted(quiet, Ts) is quiet  # a quiet camera's photos: the very same pixels
+    noisy = np.stack(_photos(rng, 5.0))
+    moved = Ts.copy()
+    moved[::2, :3, 3] *= 1.15
+    assert ie.quieted(noisy, moved) is noisy  # no noise measured where the camera moves
+    out = ie.quieted(noisy, Ts)
+    assert out.shape == noisy.shape and out.dtype == np.uint8
+    flat = np.s_[:, 10:50, 20:140]
+    assert out[flat].std() < 0.4 * noisy[flat].std()
+    # the step from the wall to the floor stays where it was, and sharp
+    col = out[:, :, 80, 1].astype(float).mean(axis=0)
+    assert col[57] < 100 and col[62] > 190
