@@ -228,6 +228,10 @@ def look_again(seq: SequenceCalibration, observations: list, failures: list[str]
 
     S = np.eye(3) if marks_map is None else np.asarray(marks_map, np.float64)
     Sinv = np.linalg.inv(S)
+
+    def full(C):  # a conic in work pixels -> full-image pixels: C_full = S^T C S
+        return None if C is None else normalize_conic(S.T @ C @ S)
+
     K, dist = seq.intrinsics.K, seq.intrinsics.dist
     found: list[int] = []
     for k, (obs, img) in enumerate(zip(observations, images, strict=True)):
@@ -249,10 +253,7 @@ def look_again(seq: SequenceCalibration, observations: list, failures: list[str]
             continue
         edges = tuple(replace(e, uv_px=e.uv_px @ Sinv[:2, :2].T + Sinv[:2, 2]) for e in near.edges)
         c = near.conics
-        if c is not None:  # work pixels -> full-image pixels: C_full = S^T C S
-            def full(C):
-                return None if C is None else normalize_conic(S.T @ C @ S)
-
+        if c is not None:
             c = RingConics(outer=full(c.outer), inner=full(c.inner), outer_plus=full(c.outer_plus),
                            outer_minus=full(c.outer_minus), inner_plus=full(c.inner_plus),
                            inner_minus=full(c.inner_minus))
