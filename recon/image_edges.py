@@ -39,7 +39,7 @@ EDGE_LO, EDGE_HI = 8.0, 16.0  # Canny's thresholds at the least
 NOISE_MULT = 2.6  # EDGE_LO over the noise's median gradient (the synth's photos: 2.3-3.0 -> 8; noise 4 DN: 4.2-5.0)
 MAX_LO = 16.0  # EDGE_LO at the most
 NOISE_PAIRS = 6  # consecutive pairs of photos the noise is measured on, spread over the sequence
-DENOISE_H = 5.0  # quieted: non-local means' filter strength for a noisy camera's photos (luminance and colour)
+DENOISE_H = 3.0  # quieted: non-local means' filter strength for a noisy camera's photos (luminance and colour)
 
 
 def smoothed_grey(image_rgb: np.ndarray) -> np.ndarray:
