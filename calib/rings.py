@@ -278,10 +278,7 @@ def detect_rings(image, spec: TargetSpec, *, principal_point_px=None,
         For an image that is not uint8 (H, W) or (H, W, 3).
     """
     grey = grey_image(image)
-    if not edge_spacing_px > 0:
-        raise ValueError(f"edge_spacing_px must be positive, got {edge_spacing_px}")
-    if not 0.2 <= gamma <= 5.0:
-        raise ValueError(f"gamma must be between 0.2 and 5, got {gamma}")
+    _check_search(edge_spacing_px, gamma)
     h, w = grey.shape
     f = max(1, int(round(max(h, w) / COARSE_SIZE_PX)))
     first_error, seen = None, []
@@ -317,10 +314,17 @@ def detect_rings_near(image, spec: TargetSpec, C_outer: np.ndarray, C_inner: np.
     or a target that is not there raises ``CalibrationError`` as it does.
     """
     grey = grey_image(image)
-    if not edge_spacing_px > 0:
-        raise ValueError(f"edge_spacing_px must be positive, got {edge_spacing_px}")
+    _check_search(edge_spacing_px, gamma)
     return _fine(grey, normalize_conic(np.asarray(C_outer, float)), normalize_conic(np.asarray(C_inner, float)),
                  spec, edge_spacing_px, gamma)
+
+
+def _check_search(edge_spacing_px: float, gamma: float) -> None:
+    """``detect_rings``' and ``detect_rings_near``'s checks of their search settings (ValueError)."""
+    if not edge_spacing_px > 0:
+        raise ValueError(f"edge_spacing_px must be positive, got {edge_spacing_px}")
+    if not 0.2 <= gamma <= 5.0:
+        raise ValueError(f"gamma must be between 0.2 and 5, got {gamma}")
 
 
 def _ratio_hint(rings: list[tuple[np.ndarray, float]], spec: TargetSpec) -> str:
