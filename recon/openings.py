@@ -104,6 +104,7 @@ class Opening:
     px_per_mm: float
     wall_mm: float
     floor_mm: float | None  # the floor the views outline inside it, if any
+    lift_mm: float = 0.0  # the rim's top over ``height_mm``: the roof the rim leaves starts there
 
     @property
     def area_mm2(self) -> float:
@@ -192,22 +193,30 @@ def _on_a_roof(sw: Sweep, k: int, region: np.ndarray, rim_mm: float, tan_e: floa
     return float(np.median(past[border])) >= 0.5 * roof
 
 
-def _over_roof(sw: Sweep, k: int, region: np.ndarray, hull: VoxelHull, tan_e: float) -> float:
-    """The share of the region over which the hull rises higher than the roof its rim leaves.
+def _over_roof(sw: Sweep, k: int, region: np.ndarray, hull: VoxelHull, tan_e: float) -> tuple[float, float]:
+    """The share of the region over which the hull rises higher than the roof its rim leaves, and the roof's lift.
 
     Over an opening the hull is what the silhouettes' upper edges, the far half of the rim, leave: at a
     distance ``d`` inside the rim no higher than ``d`` times ``tan_e``, the tangent of the steepest view onto
-    the region (and ``ROOF_SLACK_MM``). A dome steeper than the views, or anything standing on the region
-    that the silhouettes show, rises above that.
+    the region (and ``ROOF_SLACK_MM``), over the rim's top. A dome steeper than the views, or anything standing
+    on the region that the silhouettes show, rises above that.
+
+    The rim's top is the hull's over the region's border, up to ``RIM_WIDE_OFFSET_MM`` over ``heights[k]``
+    (the lift, mm): a soft photo spreads the rim's outline over its height, and the share that closes it may
+    peak under its top (the synth's cup, blur 1 px: 2.3 mm under it, the hull over the opening exactly the
+    roof from there; sharp: 0.2 to 1.4 mm).
     """
     h = float(sw.heights[k])
     ii, jj = np.nonzero(region)
     x, z = sw.x0 + jj / sw.px, sw.z0 + ii / sw.px
     run = column_run_mm(hull, x, z, h)
     if run is None:
-        return 0.0
+        return 0.0, 0.0
     d = cv2.distanceTransform(np.pad(sw.sections[k], 1).astype(np.uint8), cv2.DIST_L2, 5)[1:-1, 1:-1][ii, jj] / sw.px
-    return float(np.mean(run > d * tan_e + ROOF_SLACK_MM))
+    over = run - d * tan_e  # the hull's height over a roof sloped as the steepest view from the rim
+    border = (region & ~(cv2.erode(region.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0))[ii, jj]
+    lift = float(np.clip(np.median(over[border]), 0.0, RIM_WIDE_OFFSET_MM)) if border.any() else 0.0
+    return float(np.mean(over > lift + ROOF_SLACK_MM)), lift
 
 
 def rim_peaks(sw: Sweep) -> list[tuple[int, float]]:
@@ -258,7 +267,8 @@ def find_openings(images_rgb, masks, K, Ts, hull: VoxelHull, swept: Sweep | None
             tan_e = steepest_tan(sw.Ts, (sw.x0 + jj.mean() / px, h, sw.z0 + ii.mean() / px))
             if _on_a_roof(sw, k, region, rim_mm, tan_e):
                 continue
-            if _over_roof(sw, k, region, hull, tan_e) > MAX_OVER_ROOF:
+            over, lift = _over_roof(sw, k, region, hull, tan_e)
+            if over > MAX_OVER_ROOF:
                 continue
             if _knob(sw, k, share, region):
                 continue
@@ -268,7 +278,7 @@ def find_openings(images_rgb, masks, K, Ts, hull: VoxelHull, swept: Sweep | None
             floor = next((float(heights[j]) for j, s in reversed(sw.peaks)
                           if heights[j] <= h - FLOOR_DROP_MM and s == EDGE_SHARE
                           and _rings(sw.outline(j, s) & deep, region, px)), None)
-            found.append(Opening(h, region, (sw.x0, sw.z0), px, wall, floor))
+            found.append(Opening(h, region, (sw.x0, sw.z0), px, wall, floor, lift))
     return found
 
 
@@ -289,8 +299,8 @@ def _inside_of(op: Opening, hull: VoxelHull, inside: np.ndarray, solid: np.ndarr
     """The voxels hollowed under (and over) the opening: a bool grid like the hull's.
 
     Over it only the roof the rim leaves goes (``d`` inside the rim, up to ``d`` times ``tan_e``, the steepest
-    view's tangent, and ``ROOF_SLACK_MM``): anything higher is something the silhouettes show (a handle arching
-    over it)."""
+    view's tangent, and ``ROOF_SLACK_MM`` over the rim's top, ``lift_mm`` over the opening): anything higher is
+    something the silhouettes show (a handle arching over it)."""
     o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
     ny = inside.shape[1]
     y = o[1] + np.arange(ny) * v
@@ -304,7 +314,7 @@ def _inside_of(op: Opening, hull: VoxelHull, inside: np.ndarray, solid: np.ndarr
     top |= cols & inside[:, jr, :]
     floor_y = np.where(inside, np.arange(ny)[None, :, None], ny).min(axis=1)  # (Nx, Nz) the hull's bottom slice
     E = np.zeros_like(inside)
-    roof = (y[None, jr + 1:, None] - op.height_mm) <= lateral_rim[:, None, :] * tan_e + ROOF_SLACK_MM
+    roof = (y[None, jr + 1:, None] - op.height_mm - op.lift_mm) <= lateral_rim[:, None, :] * tan_e + ROOF_SLACK_MM
     E[:, jr + 1:, :] = inside[:, jr + 1:, :] & top[:, None, :] & roof  # the roof over the opening
     if solid is not None:
         E[:, jr + 1:, :] &= ~solid[:, jr + 1:, :]

@@ -25,14 +25,15 @@ K = np.array([[F_PX, 0.0, (W - 1) / 2], [0.0, F_PX, (H - 1) / 2], [0.0, 0.0, 1.0
 RIM_Y = 69.4  # the synth's cup (turntable.synth.objects): its rim's top, 3 mm walls, its inside down to 5 mm
 
 
-def _synth(folder, obj: str, seed: int = 3, noise: float = 2.0):
-    """A white (uniform off-white) ``obj`` rendered by the synth, 18 views, dark room, sensor noise ``noise`` DN;
-    (images, masks, K, Ts, hull, the true mesh) from its true cameras and silhouettes."""
+def _synth(folder, obj: str, seed: int = 3, noise: float = 2.0, blur: float = 0.0):
+    """A white (uniform off-white) ``obj`` rendered by the synth, 18 views, dark room, sensor noise ``noise`` DN,
+    optical blur ``blur`` px; (images, masks, K, Ts, hull, the true mesh) from its true cameras and silhouettes."""
     import cv2
     import trimesh
 
     make_sequence(folder, SynthOptions(object=obj, backdrop="dark", seed=seed, width=W, height=H, focal_px=F_PX,
-                                       frames=18, step_deg=20.0, albedo=(0.85, 0.84, 0.82), noise=noise))
+                                       frames=18, step_deg=20.0, albedo=(0.85, 0.84, 0.82), noise=noise,
+                                       blur_px=blur))
     seq = read_cameras(folder / "cameras_gt.json")
     images = [np.ascontiguousarray(cv2.imread(str(folder / f.image))[..., ::-1]) for f in seq.frames]
     masks = np.stack([cv2.imread(str(folder / "masks" / (Path(f.image).stem + ".png")), 0) > 127
@@ -232,3 +233,42 @@ def test_a_region_in_the_roofs_section_over_a_rim_is_on_a_roof():
     # a bowl flaring out to its rim is no roof either
     bowl = _sweep([r_mm <= 20.0 + 0.2 * (h - 60.0) for h in heights], heights, px)
     assert not _on_a_roof(bowl, k_rim, r_mm <= 18.0, 3.0, tan_e)
+
+
+def test_a_rim_found_under_its_top_lifts_the_roof_it_leaves():
+    """A soft photo spreads a rim's outline over its height, and the outline may close it 2.4 mm under its top
+    (the synth's cup, blur 1 px, automatic silhouettes). The hull over the opening is the roof the rim's top
+    leaves: from there it is no higher than the steepest view allows, and hollowing takes it all; a knob standing
+    on the region rises over it still. Measured from the rim's height alone, that roof read as something
+    standing on 35 % of the opening, and the cup was left solid (2.0 % of its diagonal from the truth)."""
+    from recon.openings import Opening, _inside_of, _over_roof
+
+    px, tan_e, v, top, r_out = 3.0, 0.4, 0.5, 69.4, 35.0
+    heights = np.arange(60.0, 84.0, 0.5)
+    jj, ii = np.meshgrid(np.arange(241), np.arange(241))
+    r_mm = np.hypot(ii - 120, jj - 120) / px  # the raster: x0 = z0 = -40 mm
+    sw = _sweep([r_mm <= r_out] * len(heights), heights, px)
+    sw.__dict__.update(x0=-40.0, z0=-40.0)
+    # the silhouettes' hull: the cup (solid) up to its rim's top, the roof the views leave over it
+    ax = np.arange(-40.0, 40.0 + v / 2, v)
+    x, y, z = np.meshgrid(ax, np.arange(0.0, 100.0, v), ax, indexing="ij")
+    r = np.hypot(x, z)
+    cup = (r <= r_out) & (y <= top + np.maximum(r_out - r, 0.0) * tan_e)
+    k = int(np.argmin(np.abs(heights - 67.0)))
+    region = r_mm <= r_out - 4.0
+
+    def hull_of(inside):
+        return VoxelHull(values=np.where(inside, 1.0, -1.0).astype(np.float32), origin_table=(-40.0, 0.0, -40.0),
+                         voxel_mm=v)
+
+    over, lift = _over_roof(sw, k, region, hull_of(cup), tan_e)
+    assert over <= 0.05 and abs(lift - (top - 67.0)) <= 2 * v
+    knob = cup | ((r <= 15.0) & (y <= 90.0))
+    assert _over_roof(sw, k, region, hull_of(knob), tan_e)[0] > 0.15
+    # hollowed: nothing over the opening stays, not even a lid under the rim's roof
+    op = Opening(67.0, region, (-40.0, -40.0), px, 4.0, None, lift)
+    E = _inside_of(op, hull_of(cup), cup, None, tan_e)
+    over_opening = (r <= r_out - 6.0) & (y > 67.0)
+    assert not (cup & ~E & over_opening).any()
+    flat = Opening(67.0, region, (-40.0, -40.0), px, 4.0, None)  # the roof measured from 67 mm: a lid left
+    assert (cup & ~_inside_of(flat, hull_of(cup), cup, None, tan_e) & over_opening).sum() > 1000
