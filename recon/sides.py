@@ -55,6 +55,7 @@ MIN_FACING = 3
 FACING_DEG = 20.0  # a view faces a side where it sees it at least this steeply
 MIN_HEIGHT_MM = 2.0  # sections from this high above the table (the table's print lies at 0); ...
 FOOT_MM = 1.0  # ... sides found this near it go on down to the table
+GAP_MM = 4.0  # a side kept this near above and below goes through the layers between
 BAND_MM = 4.0  # the guard judges the carving band by band of heights ...
 GUARD = 0.003  # ... each may uncover at most this share of any view's silhouette, ...
 FORGIVE_PX = 20  # ... not counting what lies near (FORGIVE_NEAR_PX) this many of its pixels together ...
@@ -196,6 +197,22 @@ def _matches(c: _Chord, others: list[_Chord], tol: float) -> bool:
     return any(np.abs(c.A - o.A).max() <= tol and np.abs(c.B - o.B).max() <= tol for o in others)
 
 
+def _through(kept_at: dict[int, list[_Chord]], gap: int) -> dict[int, list[_Chord]]:
+    """Per layer, the sides that go through it from the layers above and below: a chord kept in a layer and again
+    within ``gap`` layers higher, where the layers between did not keep it (a soft photo's corners wander by more
+    than the match allows in a layer or two: the synth's box, blur 1 px, kept one of four sides at 22 mm)."""
+    out: dict[int, list[_Chord]] = {}
+    for j, kept in kept_at.items():
+        for c in kept:
+            top = next((j2 for j2 in range(j + gap + 1, j + 1, -1) if _matches(c, kept_at.get(j2, []), 2.0)), None)
+            if top is None:
+                continue
+            for iy in range(j + 1, top):
+                if not _matches(c, kept_at.get(iy, []), 2.0) and not _matches(c, out.get(iy, []), 2.0):
+                    out.setdefault(iy, []).append(c)
+    return out
+
+
 def _apply(section: np.ndarray, chords: list[_Chord], v: float, strip: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """(carve, value) for one height: the voxels of ``section`` outside the chords (between the chord and
     its arc; with ``strip``, anywhere beside the chord), and their new values."""
@@ -231,54 +248,12 @@ def _cover(pts, K, T, shape) -> np.ndarray:
     return cv2.dilate(cov, np.ones((3, 3), np.uint8)) > 0
 
 
-def flatten_sides(hull: VoxelHull, images_rgb, masks, K, Ts) -> tuple[VoxelHull, list[Side]]:
-    """The hull without the tents over its flat sides (see the module's docstring); and the bands flattened."""
-    vals = np.asarray(hull.values, np.float32)
-    inside = vals > 0
-    if not inside.any() or len(Ts) < 2 * MIN_FACING:
-        return hull, []
-    o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
-    Ts = np.asarray(Ts, float)
-    cams = camera_centre_table(Ts)
-    greys = [smoothed_grey(im) for im in images_rgb]
-    edge = _edge_maps(greys, edge_thresholds(images_rgb, Ts))
-    grey = [g.astype(np.float32) for g in greys]
-    need = CORNER_SHARE * len(Ts)
-
-    def h_of(iy: int) -> float:
-        return float(o[1] + iy * v)
-
-    chords: dict[int, list[_Chord]] = {}
-    for iy in range(inside.shape[1]):
-        if h_of(iy) >= MIN_HEIGHT_MM and inside[:, iy, :].any():
-            chords[iy] = _chords(inside[:, iy, :], h_of(iy), o, v, edge, grey, K, Ts, cams, need)
-    carved = np.zeros(inside.shape, bool)
-    new = vals.copy()
-    lowest = True
-    for iy, found in chords.items():
-        # a side is a side over some height: the same chord (within a voxel or two) in most of the layers
-        # either side (a smooth object's shading puts an edge here and there)
-        near = [chords.get(j, []) for j in (iy - 2, iy - 1, iy + 1, iy + 2)]
-        kept = [c for c in found if sum(_matches(c, other, 2.0) for other in near) >= 3]
-        if kept:
-            carve, value = _apply(inside[:, iy, :], kept, v)
-            carved[:, iy, :] = carve
-            new[:, iy, :] = np.minimum(new[:, iy, :], value)
-            if lowest and h_of(iy) <= MIN_HEIGHT_MM + FOOT_MM:
-                # the sides stand on the table: below the lowest section looked at (the table's print is
-                # too near for corners), the lowest one's sides go on down
-                for j in range(iy):
-                    if h_of(j) > 0.0 and inside[:, j, :].any():
-                        carve, value = _apply(inside[:, j, :], kept, v, strip=True)
-                        carved[:, j, :] = carve
-                        new[:, j, :] = np.minimum(new[:, j, :], value)
-            lowest = False
-    if not carved.any():
-        return hull, []
-    # the guard, band by band of heights: what the carving uncovers of each view's silhouette
+def _refused(inside: np.ndarray, carved: np.ndarray, band: np.ndarray, o, v: float, masks, K,
+             Ts) -> tuple[set[int], dict[int, np.ndarray]]:
+    """The guard, band by band of heights (``band``: each layer's): the bands whose carving uncovers too much of
+    a view's silhouette, and the voxels carved in each band (table mm)."""
     after = inside & ~carved
     before_pts, after_pts = _shell(inside, o, v), _shell(after, o, v)
-    band = np.floor(np.array([h_of(iy) for iy in range(inside.shape[1])]) / BAND_MM).astype(int)
     bands = sorted(set(band[np.flatnonzero(carved.any(axis=(0, 2)))].tolist()))
     cidx = np.argwhere(carved)
     band_pts = {b: o + cidx[band[cidx[:, 1]] == b] * v for b in bands}
@@ -309,6 +284,74 @@ def flatten_sides(hull: VoxelHull, images_rgb, masks, K, Ts) -> tuple[VoxelHull,
             nl = (lost & _cover(band_pts[b], K, T, shape)).sum()
             if nl > GUARD * max(m.sum(), 1):
                 bad.add(b)
+    return bad, band_pts
+
+
+def flatten_sides(hull: VoxelHull, images_rgb, masks, K, Ts) -> tuple[VoxelHull, list[Side]]:
+    """The hull without the tents over its flat sides (see the module's docstring); and the bands flattened."""
+    vals = np.asarray(hull.values, np.float32)
+    inside = vals > 0
+    if not inside.any() or len(Ts) < 2 * MIN_FACING:
+        return hull, []
+    o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
+    Ts = np.asarray(Ts, float)
+    cams = camera_centre_table(Ts)
+    greys = [smoothed_grey(im) for im in images_rgb]
+    edge = _edge_maps(greys, edge_thresholds(images_rgb, Ts))
+    grey = [g.astype(np.float32) for g in greys]
+    need = CORNER_SHARE * len(Ts)
+
+    def h_of(iy: int) -> float:
+        return float(o[1] + iy * v)
+
+    chords: dict[int, list[_Chord]] = {}
+    for iy in range(inside.shape[1]):
+        if h_of(iy) >= MIN_HEIGHT_MM and inside[:, iy, :].any():
+            chords[iy] = _chords(inside[:, iy, :], h_of(iy), o, v, edge, grey, K, Ts, cams, need)
+    # a side is a side over some height: the same chord (within a voxel or two) in most of the layers either
+    # side (a smooth object's shading puts an edge here and there)
+    kept_at = {iy: [c for c in found
+                    if sum(_matches(c, chords.get(j, []), 2.0) for j in (iy - 2, iy - 1, iy + 1, iy + 2)) >= 3]
+               for iy, found in chords.items()}
+    through = _through(kept_at, max(int(round(GAP_MM / v)), 1))
+
+    def carving(through: dict[int, list[_Chord]]) -> tuple[np.ndarray, np.ndarray]:
+        carved = np.zeros(inside.shape, bool)
+        new = vals.copy()
+        lowest = True
+        for iy, kept in kept_at.items():
+            if not kept and not through.get(iy):
+                continue
+            carve, value = _apply(inside[:, iy, :], kept, v)
+            if through.get(iy):
+                carve2, value2 = _apply(inside[:, iy, :], through[iy], v, strip=True)
+                carve, value = carve | carve2, np.minimum(value, value2)
+            carved[:, iy, :] = carve
+            new[:, iy, :] = np.minimum(new[:, iy, :], value)
+            if lowest and h_of(iy) <= MIN_HEIGHT_MM + FOOT_MM:
+                # the sides stand on the table: below the lowest section looked at (the table's print is
+                # too near for corners), the lowest one's sides go on down
+                for j in range(iy):
+                    if h_of(j) > 0.0 and inside[:, j, :].any():
+                        carve, value = _apply(inside[:, j, :], kept, v, strip=True)
+                        carved[:, j, :] = carve
+                        new[:, j, :] = np.minimum(new[:, j, :], value)
+            lowest = False
+        return carved, new
+
+    carved, new = carving(through)
+    if not carved.any():
+        return hull, []
+    band = np.floor(np.array([h_of(iy) for iy in range(inside.shape[1])]) / BAND_MM).astype(int)
+    bad, band_pts = _refused(inside, carved, band, o, v, masks, K, Ts)
+    if through:
+        # the sides gone through layers may not fit them as well as their own would, and what they uncover
+        # counts against the bands round them: kept only where they cost no band its own carving
+        own_carved, own_new = carving({})
+        own_bad, own_pts = _refused(inside, own_carved, band, o, v, masks, K, Ts)
+        if not bad <= own_bad:
+            carved, new, bad, band_pts = own_carved, own_new, own_bad, own_pts
+    bands = sorted(band_pts)
     keep = ~np.isin(band, sorted(bad))[None, :, None]
     done = []
     for b in bands:
