@@ -372,6 +372,33 @@ def test_a_side_lost_for_a_few_layers_goes_through_them(box_scene, monkeypatch):
     assert hull_holds(flat, tents).all()
 
 
+def test_sides_gone_through_layers_are_dropped_where_they_cost_a_band_its_own_carving(box_scene, monkeypatch):
+    """What the sides carried through layers uncover counts against the bands round them (the synth's box, dark
+    room, seed 4: two bands refused with them, none without). Where the guard refuses a band with them that it
+    would not refuse without, the carving is what each layer found itself."""
+    import recon.sides as sides_mod
+
+    images, masks, T, _ = box_scene
+    hull = carve_hull(masks, K, T, radius_mm=60.0, height_mm=90.0, resolution=200, max_rejections=0)
+    found, through, judge = sides_mod._chords, sides_mod._through, sides_mod._refused
+    monkeypatch.setattr(sides_mod, "_chords", lambda section, h, *a: [] if 19.0 <= h <= 21.0 else found(section, h, *a))
+    carried, _ = flatten_sides(hull, images, masks, K, T)
+    monkeypatch.setattr(sides_mod, "_through", lambda kept_at, gap: {})
+    own, _ = flatten_sides(hull, images, masks, K, T)
+    assert not np.array_equal(carried.values, own.values)
+    monkeypatch.setattr(sides_mod, "_through", through)
+    calls = []
+
+    def refuse_with_them(inside, carved, band, *a):
+        bad, pts = judge(inside, carved, band, *a)
+        calls.append(bad)
+        return (bad | {int(20.0 // sides_mod.BAND_MM)}, pts) if len(calls) == 1 else (bad, pts)
+
+    monkeypatch.setattr(sides_mod, "_refused", refuse_with_them)
+    flat, sides = flatten_sides(hull, images, masks, K, T)
+    assert len(calls) == 2 and sides and np.array_equal(flat.values, own.values)
+
+
 @pytest.mark.parametrize("shape", ["sphere", "lid"])
 def test_round_sides_have_no_corners_and_keep_their_hull(shape):
     """A sphere's and a round box's hull bows out between the views' silhouettes too, but no point of their
