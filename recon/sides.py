@@ -17,8 +17,9 @@ bows out of the chord by no more than a tent could (``MAX_BULGE`` of the
 chord), the hull outside the chord goes, if the side is flat: the views
 that face it see the chord of one shade all over (a plain flat side is
 evenly lit; a cylinder's shading runs across it, a printed side has its
-print), and the same chord is found in most of the layers either side.
-Nothing is carved that leaves a view's silhouette pixels without a voxel
+print), and the same chord is found in most of the layers either side (and
+goes through up to ``GAP_MM`` of layers between two that found it, where
+a soft photo's corners wandered). Nothing is carved that leaves a view's silhouette pixels without a voxel
 behind them (``GUARD``, per band of heights), except next to silhouette
 pixels the hull left unexplained already (a cast shadow held in one view's
 mask, which the other views carved).
