@@ -33,8 +33,9 @@ An *opening* is such a horizontal outline that
 - has nothing standing on it: the hull over it no higher than the roof the
   rim itself leaves from its top (at ``d`` inside the rim, ``d`` times the
   steepest view's tangent; the top up to ``RIM_WIDE_OFFSET_MM`` over the height
-  the outline closed at), and no outline inside it higher up (a knob) but the roof's own
-  and what is outlined as much under the rim (static shading near the axis).
+  the outline closed at), and no outline inside it higher up (a knob) but the
+  roof's own and what is outlined as much under the rim (static shading near
+  the axis).
 
 Under it the inside is hollowed as a vessel's: down each column of the
 opening, hull voxels farther than the wall from the hull's outside (the

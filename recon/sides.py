@@ -19,10 +19,10 @@ that face it see the chord of one shade all over (a plain flat side is
 evenly lit; a cylinder's shading runs across it, a printed side has its
 print), and the same chord is found in most of the layers either side (and
 goes through up to ``GAP_MM`` of layers between two that found it, where
-a soft photo's corners wandered). Nothing is carved that leaves a view's silhouette pixels without a voxel
-behind them (``GUARD``, per band of heights), except next to silhouette
-pixels the hull left unexplained already (a cast shadow held in one view's
-mask, which the other views carved).
+a soft photo's corners wandered). Nothing is carved that leaves a view's
+silhouette pixels without a voxel behind them (``GUARD``, per band of
+heights), except next to silhouette pixels the hull left unexplained already
+(a cast shadow held in one view's mask, which the other views carved).
 """
 
 from __future__ import annotations
@@ -316,16 +316,16 @@ def flatten_sides(hull: VoxelHull, images_rgb, masks, K, Ts) -> tuple[VoxelHull,
                for iy, found in chords.items()}
     through = _through(kept_at, max(int(round(GAP_MM / v)), 1))
 
-    def carving(through: dict[int, list[_Chord]]) -> tuple[np.ndarray, np.ndarray]:
+    def carving(carried: dict[int, list[_Chord]]) -> tuple[np.ndarray, np.ndarray]:
         carved = np.zeros(inside.shape, bool)
         new = vals.copy()
         lowest = True
         for iy, kept in kept_at.items():
-            if not kept and not through.get(iy):
+            if not kept and not carried.get(iy):
                 continue
             carve, value = _apply(inside[:, iy, :], kept, v)
-            if through.get(iy):
-                carve2, value2 = _apply(inside[:, iy, :], through[iy], v, strip=True)
+            if carried.get(iy):
+                carve2, value2 = _apply(inside[:, iy, :], carried[iy], v, strip=True)
                 carve, value = carve | carve2, np.minimum(value, value2)
             carved[:, iy, :] = carve
             new[:, iy, :] = np.minimum(new[:, iy, :], value)
