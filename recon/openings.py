@@ -113,6 +113,11 @@ class Opening:
         return float(self.region.sum()) / self.px_per_mm ** 2
 
 
+def _border(region: np.ndarray) -> np.ndarray:
+    """The region's own texels on its border (8-connected to outside it)."""
+    return region & ~(cv2.erode(region.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)
+
+
 def _rim_mm(region: np.ndarray, section: np.ndarray, band: np.ndarray, px: float) -> float:
     """The rim's width: from the region's border to the hull's outside, less the band's spread past an edge.
 
@@ -122,8 +127,7 @@ def _rim_mm(region: np.ndarray, section: np.ndarray, band: np.ndarray, px: float
     (the synth's cup, 3 mm: 3.1 mm).
     """
     dist = cv2.distanceTransform(np.pad(section, 1).astype(np.uint8), cv2.DIST_L2, 5)[1:-1, 1:-1] / px
-    border = region & ~(cv2.erode(region.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)
-    width = float(np.median(dist[border]))
+    width = float(np.median(dist[_border(region)]))
     outside = cv2.distanceTransform((~section).astype(np.uint8), cv2.DIST_L2, 5) / px
     past = band & ~section
     spread = min(float(np.percentile(outside[past], 90)), BAND_MM) if past.any() else 0.0
@@ -216,7 +220,7 @@ def _over_roof(sw: Sweep, k: int, region: np.ndarray, hull: VoxelHull, tan_e: fl
         return 0.0, 0.0
     d = cv2.distanceTransform(np.pad(sw.sections[k], 1).astype(np.uint8), cv2.DIST_L2, 5)[1:-1, 1:-1][ii, jj] / sw.px
     over = run - d * tan_e  # the hull's height over a roof sloped as the steepest view from the rim
-    border = (region & ~(cv2.erode(region.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0))[ii, jj]
+    border = _border(region)[ii, jj]
     lift = float(np.clip(np.median(over[border]), 0.0, RIM_WIDE_OFFSET_MM)) if border.any() else 0.0
     return float(np.mean(over > lift + ROOF_SLACK_MM)), lift
 

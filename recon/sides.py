@@ -345,9 +345,10 @@ def flatten_sides(hull: VoxelHull, images_rgb, masks, K, Ts) -> tuple[VoxelHull,
         return hull, []
     band = np.floor(np.array([h_of(iy) for iy in range(inside.shape[1])]) / BAND_MM).astype(int)
     bad, band_pts = _refused(inside, carved, band, o, v, masks, K, Ts)
-    if through:
+    if through and bad:
         # the sides gone through layers may not fit them as well as their own would, and what they uncover
-        # counts against the bands round them: kept only where they cost no band its own carving
+        # counts against the bands round them: kept only where they cost no band its own carving (with no band
+        # refused they cost none)
         own_carved, own_new = carving({})
         own_bad, own_pts = _refused(inside, own_carved, band, o, v, masks, K, Ts)
         if not bad <= own_bad:
