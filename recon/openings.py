@@ -301,6 +301,16 @@ def _columns(op: Opening, hull: VoxelHull, top: np.ndarray) -> np.ndarray:
     return out
 
 
+def _walled(section: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """A slice of the hull (x, z) with its holes that meet ``cols`` filled: a roof carved over the opening
+    (:func:`recon.faces.carve_above_faces`) is the cavity, and a wall is measured from the outside only."""
+    filled = ndimage.binary_fill_holes(section)
+    holes, n = ndimage.label(filled & ~section)
+    if n == 0:
+        return section
+    return section | np.isin(holes, np.unique(holes[cols & (holes > 0)])) & (holes > 0)
+
+
 def _inside_of(op: Opening, hull: VoxelHull, inside: np.ndarray, solid: np.ndarray | None, tan_e: float) -> np.ndarray:
     """The voxels hollowed under (and over) the opening: a bool grid like the hull's.
 
@@ -313,11 +323,14 @@ def _inside_of(op: Opening, hull: VoxelHull, inside: np.ndarray, solid: np.ndarr
     jr = min(max(int(np.floor((op.height_mm - o[1]) / v)), 0), ny - 1)  # the rim's slice
     # the cavity's top: the rim's slice of the hull farther than the wall from its outside, where it meets the
     # opening (the outline's band eats into the opening's border)
-    lateral_rim = lateral_mm(inside[:, jr, :], v)
     cols = _columns(op, hull, op.region)
+    lateral_rim = lateral_mm(_walled(inside[:, jr, :], cols), v)
     lab, _ = ndimage.label(lateral_rim > op.wall_mm)
     top = np.isin(lab, np.unique(lab[cols & (lab > 0)])) & (lab > 0)
-    top |= cols & inside[:, jr, :]
+    # and the opening's columns; where a flat top's roof was carved down under the rim (recon.faces took the
+    # opening's evenly lit inside for a top: the synth's cup at seed 11 in a dark room), a column's hull starts
+    # lower, and the descent waits for it there
+    top = (top | cols) & inside[:, :jr + 1, :].any(axis=1)
     floor_y = np.where(inside, np.arange(ny)[None, :, None], ny).min(axis=1)  # (Nx, Nz) the hull's bottom slice
     E = np.zeros_like(inside)
     roof = (y[None, jr + 1:, None] - op.height_mm - op.lift_mm) <= lateral_rim[:, None, :] * tan_e + ROOF_SLACK_MM
@@ -325,17 +338,19 @@ def _inside_of(op: Opening, hull: VoxelHull, inside: np.ndarray, solid: np.ndarr
     if solid is not None:
         E[:, jr + 1:, :] &= ~solid[:, jr + 1:, :]
     cur = top.copy()
+    waiting = top & ~inside[:, jr, :]  # (the columns whose hull has not started yet)
     for j in range(jr, -1, -1):
-        lateral = lateral_mm(inside[:, j, :], v)
+        lateral = lateral_mm(_walled(inside[:, j, :], cols), v)
         ok = inside[:, j, :] & (lateral > op.wall_mm) & ((j - floor_y + 0.5) * v > op.wall_mm)
         if op.floor_mm is not None:
             ok &= y[j] > op.floor_mm
         if solid is not None:
             ok &= ~solid[:, j, :]
-        cur &= ok
+        waiting &= ~inside[:, j, :]
+        cur &= ok | waiting
         if not cur.any():
             break
-        E[:, j, :] = cur
+        E[:, j, :] = cur & ~waiting
     return E
 
 
