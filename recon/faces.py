@@ -56,7 +56,7 @@ from .silhouette_doubt import channel_max
 from .types import VoxelHull
 
 __all__ = ["Face", "Slab", "Sweep", "sweep", "find_faces", "carve_above_faces", "carve_under_slabs", "same_top",
-           "uncovered_share"]
+           "uncovered_share", "hull_uncovered_share"]
 
 STEP_MM = 0.5  # the sweep's step in height
 PX_PER_MM = 3.0  # the planes' raster ...
@@ -430,8 +430,19 @@ def _on_raster(region: np.ndarray, face: Face, x: np.ndarray, z: np.ndarray) -> 
 
 def uncovered_share(inside: np.ndarray, trial: np.ndarray, hull: VoxelHull, masks, K, Ts) -> float:
     """The largest share of a view's silhouette that carving ``inside`` down to ``trial`` leaves with no hull behind."""
+    return _uncovered(_shell_points(inside, hull), _shell_points(trial, hull), masks, K, Ts)
+
+
+def hull_uncovered_share(before: VoxelHull, after: VoxelHull, masks, K, Ts) -> float:
+    """:func:`uncovered_share` between two hulls, each on its own grid: the largest share of a view's silhouette
+    (``masks``) that ``before`` covers and ``after`` leaves with no hull behind."""
+    return _uncovered(_shell_points(np.asarray(before.values) > 0, before),
+                      _shell_points(np.asarray(after.values) > 0, after), masks, K, Ts)
+
+
+def _uncovered(before: np.ndarray, after: np.ndarray, masks, K, Ts) -> float:
+    """The largest share of a view's silhouette that the shell points ``before`` cover and ``after`` do not."""
     shape = masks[0].shape
-    before, after = _shell_points(inside, hull), _shell_points(trial, hull)
     return max(float((m & _coverage(before, K, T, shape) & ~_coverage(after, K, T, shape)).sum())
                / max(float(m.sum()), 1.0) for m, T in zip(masks, Ts, strict=True))
 

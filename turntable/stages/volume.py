@@ -29,6 +29,7 @@ _MIN_TOUCH_PX = 3  # ... and a view touches the outline when at least this many 
 _SPLIT_MIN_VIEWS = 3  # the object's side of the split is voted on where at least this many views split a pixel
 SPLIT_MAX_GROWTH = 1.3  # the split's hull may be this many times the one without the pieces (a neck given back)
 SPLIT_MAX_PAPER = 0.25  # ... or more, where at most this share of what the split gives back is the paper
+SPLIT_MAX_UNCOVERED = 0.03  # where the hull fits, a split may leave at most this share of a view's mask uncovered
 _SPLIT_SIGMA_PX = 0.5  # the split's colour gradient: Gaussian sigma, pixels (_wall_side)
 MIN_TOUCH_VIEWS = 2  # the volume grows when this many views' silhouettes touch it (one may be noise)
 
