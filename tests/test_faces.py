@@ -436,3 +436,41 @@ def test_a_volume_in_a_note_is_never_zero_cm3():
 
     assert volume_text(24_400.0) == "24.4 cm³" and volume_text(40.0) == "40.0 mm³"
     assert volume_text(0.3) == "0.3 mm³"  # a speck of the hull dropped (the sample's)
+
+
+def test_a_region_its_outline_encloses_only_at_the_corners_is_no_face():
+    """A box's vertical corners are points on every horizontal plane, so every height inside the box has them on
+    its outline; the hull's section closes the rest. Such a region is no face: the outline must enclose a share of
+    its rim (``OUTLINED_SHARE``). Taken for one at 35.5 mm inside a white box on a light wall (seed 17), its roof —
+    the box's upper part — was carved hollow: 2.35 % of the diagonal."""
+    from recon.faces import OUTLINED_SHARE, Sweep, _faces_at
+
+    px, shape = 3.0, (180, 240)
+    section = np.zeros(shape, bool)
+    section[30:150, 30:210] = True  # the box's section, 60 x 40 mm
+    rim = section & ~np.pad(section[1:-1, 1:-1] & section[:-2, 1:-1] & section[2:, 1:-1] & section[1:-1, :-2]
+                            & section[1:-1, 2:], 1)
+    corners = np.zeros(shape, bool)
+    for i, j in ((30, 30), (30, 209), (149, 30), (149, 209)):
+        corners[i - 1:i + 2, j - 1:j + 2] = True
+
+    class Outlined(Sweep):
+        def outline(self, k, share=0.7):
+            return self.drawn
+
+        def agreement(self, h, images_rgb):  # the views agree all over, on one grey
+            return np.ones(shape), np.full(shape + (3,), 200.0)
+
+    heights = np.arange(30.0, 40.0, 0.5)
+
+    def faces(drawn):
+        sw = Outlined(heights, 0.5, [section] * len(heights), [], K, np.zeros((0, 4, 4)), 0.0, 0.0, px, shape)
+        object.__setattr__(sw, "drawn", drawn)
+        return _faces_at(sw, 11, 0.7, [])
+
+    assert faces(corners) == []  # enclosed by the section: no face
+    found = faces(rim)  # a top's edge all round
+    assert len(found) == 1 and found[0].area_mm2 > 0.9 * 60 * 40 - 60
+    gap = rim.copy()
+    gap[:, 120:] = False  # half the edge shows no step (white on white): the section closes it
+    assert OUTLINED_SHARE < 0.45 and len(faces(gap)) == 1
