@@ -12,7 +12,9 @@ its silhouette) are rectified onto planes ``y = h`` every ``STEP_MM``, and
 a height where a large share of the views put an edge on the same texels,
 sharply more than 2 mm above and below, is a face's. Its faces are the
 regions the outline encloses inside the hull's section (the section closes
-the outline where a white top's edge against white paper shows no step)
+the outline where a white top's edge against white paper shows no step, but
+the outline holds a fifth of their rim at least: a box's vertical corners are
+points on every plane)
 whose colour the views agree on (a leg standing on the top breaks both),
 if they are flat:
 of one colour all over (a flat top's normal turns with the table about
@@ -69,12 +71,12 @@ PEAK = 2.5  # ... a height is a face's where it has this many times the outline 
 PEAK_OFFSET_MM = 2.0
 MIN_OUTLINE_MM = 20.0  # ... and at least this long an outline
 MIN_FACE_MM2 = 30.0  # a face's least area
+OUTLINED_SHARE = 0.2  # ... and the share of its rim at least on its outline (the hull's section closes the rest)
 INNER_MM = 1.5  # a face is flat where, this far inside its outline, ...
 RISE_MM = 10.0  # ... the heights up to this far above it ...
 RISE_SHARE = 0.02  # ... put at most this share of its texels on an outline
 UNDER_SHARE = 0.5  # a face this much of which another one 2 to RISE_MM mm above covers is a slab's underside
 ROOF_SLACK_MM = 2.0  # the hull over a top rises at most its width times the steepest view's tangent, and this
-OUTLINED_SHARE = 0.2  # ... enclosed by the outline for this share of its rim (the hull's section closes the rest)
 MIN_AGREE = 0.5  # a face's texels are those where this share of the views agree with their median colour
 AGREE_DN = 10.0  # a view agrees with a colour within this (8-bit, each channel)
 FLAT_SPREAD_DN = 8.0  # a face's colour (the views' median) spreads over at most this (5th to 95th percentile)
@@ -343,7 +345,8 @@ def _faces_at(sw: Sweep, k: int, share: float, images_rgb) -> list[Face]:
     colour.
 
     Where the outline has a gap (a white top's edge against white paper shows no step) the hull's section
-    closes it: no face reaches out of the hull.
+    closes it: no face reaches out of the hull. A region the section encloses nearly alone (the outline under
+    ``OUTLINED_SHARE`` of its rim) is none.
     """
     h, px = float(sw.heights[k]), sw.px
     outline = cv2.dilate(sw.outline(k, share).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
