@@ -58,7 +58,7 @@ from .silhouette_doubt import channel_max, rim_counts
 from .types import VoxelHull
 
 __all__ = ["Face", "Slab", "Sweep", "sweep", "find_faces", "carve_above_faces", "carve_under_slabs", "same_top",
-           "uncovered_share", "hull_uncovered_share"]
+           "uncovered_share", "hull_uncovered_share", "shell_points", "coverage"]
 
 STEP_MM = 0.5  # the sweep's step in height
 PX_PER_MM = 3.0  # the planes' raster ...
@@ -410,20 +410,22 @@ def _votes(face: Face, pts, images_rgb, K, Ts) -> tuple[np.ndarray, np.ndarray]:
     return votes, eligible
 
 
-def _shell_points(inside: np.ndarray, hull: VoxelHull) -> np.ndarray:
-    """(N, 3) table mm: the centres of the voxels of ``inside`` on its surface."""
+def shell_points(inside: np.ndarray, origin_table, voxel_mm: float) -> np.ndarray:
+    """(N, 3) table mm: the centres of the voxels of ``inside`` (a grid from ``origin_table``, ``voxel_mm``
+    apart) on its surface."""
     shell = inside & ~ndimage.binary_erosion(inside)
-    return np.asarray(hull.origin_table, float) + np.argwhere(shell) * float(hull.voxel_mm)
+    return np.asarray(origin_table, float) + np.argwhere(shell) * float(voxel_mm)
 
 
-def _coverage(pts: np.ndarray, K, T, shape) -> np.ndarray:
+def coverage(pts: np.ndarray, K, T, shape) -> np.ndarray:
     """(H, W) bool: the pixels the points (a hull's shell voxels) project to, 3 x 3 each."""
-    uv = project_points(K, T, pts)
-    u, w = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
-    H, W = shape
-    ok = (u >= 0) & (w >= 0) & (u < W) & (w < H)
     cov = np.zeros(shape, np.uint8)
-    cov[w[ok], u[ok]] = 1
+    if len(pts):
+        uv = project_points(K, T, pts)
+        u, w = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
+        H, W = shape
+        ok = (u >= 0) & (w >= 0) & (u < W) & (w < H)
+        cov[w[ok], u[ok]] = 1
     return cv2.dilate(cov, np.ones((3, 3), np.uint8)) > 0
 
 
@@ -439,20 +441,21 @@ def _on_raster(region: np.ndarray, face: Face, x: np.ndarray, z: np.ndarray) -> 
 
 def uncovered_share(inside: np.ndarray, trial: np.ndarray, hull: VoxelHull, masks, K, Ts) -> float:
     """The largest share of a view's silhouette that carving ``inside`` down to ``trial`` leaves with no hull behind."""
-    return _uncovered(_shell_points(inside, hull), _shell_points(trial, hull), masks, K, Ts)
+    o, v = hull.origin_table, hull.voxel_mm
+    return _uncovered(shell_points(inside, o, v), shell_points(trial, o, v), masks, K, Ts)
 
 
 def hull_uncovered_share(before: VoxelHull, after: VoxelHull, masks, K, Ts) -> float:
     """:func:`uncovered_share` between two hulls, each on its own grid: the largest share of a view's silhouette
     (``masks``) that ``before`` covers and ``after`` leaves with no hull behind."""
-    return _uncovered(_shell_points(np.asarray(before.values) > 0, before),
-                      _shell_points(np.asarray(after.values) > 0, after), masks, K, Ts)
+    return _uncovered(shell_points(np.asarray(before.values) > 0, before.origin_table, before.voxel_mm),
+                      shell_points(np.asarray(after.values) > 0, after.origin_table, after.voxel_mm), masks, K, Ts)
 
 
 def _uncovered(before: np.ndarray, after: np.ndarray, masks, K, Ts) -> float:
     """The largest share of a view's silhouette that the shell points ``before`` cover and ``after`` do not."""
     shape = masks[0].shape
-    return max(float((m & _coverage(before, K, T, shape) & ~_coverage(after, K, T, shape)).sum())
+    return max(float((m & coverage(before, K, T, shape) & ~coverage(after, K, T, shape)).sum())
                / max(float(m.sum()), 1.0) for m, T in zip(masks, Ts, strict=True))
 
 

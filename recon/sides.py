@@ -36,6 +36,7 @@ from scipy import ndimage
 
 from calib.camera import camera_centre_table, project_points
 
+from .faces import coverage, shell_points
 from .image_edges import edge_thresholds, edges, smoothed_grey
 from .types import VoxelHull
 
@@ -236,33 +237,20 @@ def _apply(section: np.ndarray, chords: list[_Chord], v: float, strip: bool = Fa
     return carve, value
 
 
-def _shell(inside: np.ndarray, o, v) -> np.ndarray:
-    return o + np.argwhere(inside & ~ndimage.binary_erosion(inside)) * v
-
-
-def _cover(pts, K, T, shape) -> np.ndarray:
-    cov = np.zeros(shape, np.uint8)
-    if len(pts):
-        uv = np.rint(project_points(K, T, pts)).astype(int)
-        ok = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < shape[1]) & (uv[:, 1] < shape[0])
-        cov[uv[ok, 1], uv[ok, 0]] = 1
-    return cv2.dilate(cov, np.ones((3, 3), np.uint8)) > 0
-
-
 def _refused(inside: np.ndarray, carved: np.ndarray, band: np.ndarray, o, v: float, masks, K,
              Ts) -> tuple[set[int], dict[int, np.ndarray]]:
     """The guard, band by band of heights (``band``: each layer's): the bands whose carving uncovers too much of
     a view's silhouette, and the voxels carved in each band (table mm)."""
     after = inside & ~carved
-    before_pts, after_pts = _shell(inside, o, v), _shell(after, o, v)
+    before_pts, after_pts = shell_points(inside, o, v), shell_points(after, o, v)
     bands = sorted(set(band[np.flatnonzero(carved.any(axis=(0, 2)))].tolist()))
     cidx = np.argwhere(carved)
     band_pts = {b: o + cidx[band[cidx[:, 1]] == b] * v for b in bands}
     bad: set[int] = set()
     shape = masks[0].shape
     for m, T in zip(masks, Ts, strict=True):
-        cov_before = _cover(before_pts, K, T, shape)
-        lost = m & cov_before & ~_cover(after_pts, K, T, shape)
+        cov_before = coverage(before_pts, K, T, shape)
+        lost = m & cov_before & ~coverage(after_pts, K, T, shape)
         if not lost.any():
             continue
         # silhouette pixels the hull left unexplained already (a shadow the other views carved): what the
@@ -282,7 +270,7 @@ def _refused(inside: np.ndarray, carved: np.ndarray, band: np.ndarray, o, v: flo
         for b in bands:
             if b in bad:
                 continue
-            nl = (lost & _cover(band_pts[b], K, T, shape)).sum()
+            nl = (lost & coverage(band_pts[b], K, T, shape)).sum()
             if nl > GUARD * max(m.sum(), 1):
                 bad.add(b)
     return bad, band_pts
