@@ -220,7 +220,11 @@ class Sweep:
 
 
 def sweep(images_rgb, masks, K, Ts, hull: VoxelHull) -> Sweep | None:
-    """The plane sweep of the views' edges over the hull's height (None for an empty hull)."""
+    """The plane sweep of the views' edges over the hull's height (None for an empty hull).
+
+    ``masks``: (V, H, W) bool, where each view's edges are the object's: those within 3 px are swept (the
+    flat tops read the sure silhouettes; the openings their unknown pixels too, see ``turntable.reconstruct``).
+    """
     inside = np.asarray(hull.values) > 0
     if not inside.any():
         return None
