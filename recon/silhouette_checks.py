@@ -30,6 +30,8 @@ _TYPICAL_SHARE = 0.75  # ... when also under this share of the sequence's median
 _FLOOR_AREA = 0.002  # ... and under this fraction, whatever the other frames show
 EMPTY = "empty silhouette"  # the reason such a frame is rejected (and kept, where it closes a gap)
 _MIN_SUPPORT = 0.5  # outline fraction that must look like background
+AREA_DROP = 0.67  # a frame whose mask's area is under this share of its neighbours' median ...
+AREA_JUMP = 1.5  # ... or over this share is kept conservatively
 
 
 def frame_status(area_px: np.ndarray, support: np.ndarray, border_px: np.ndarray, region_px: np.ndarray,
@@ -70,13 +72,27 @@ def frame_status(area_px: np.ndarray, support: np.ndarray, border_px: np.ndarray
                               "median frame's)")
         elif border_px[i] > 0.25 * (W + H):
             status.append(f"conservative: silhouette touches the image border along {int(border_px[i])} px")
-        elif not 0.67 <= ratio <= 1.5:
+        elif not AREA_DROP <= ratio <= AREA_JUMP:
             status.append(f"conservative: silhouette area jumps to {100 * ratio:.0f}% of its neighbours'")
         elif support[i] < _MIN_SUPPORT:
             status.append(f"conservative: only {100 * support[i]:.0f}% of the outline looks like background")
         else:
             status.append("ok")
     return quality, tuple(status)
+
+
+def area_shortfall(area_px: np.ndarray) -> np.ndarray:
+    """(V,) the pixels each frame's mask lacks against its neighbours' median area (two each side in turn
+    order, as :func:`frame_status` weighs it) where it is under ``AREA_DROP`` of it; 0 elsewhere."""
+    area = np.asarray(area_px, np.float64)
+    V = len(area)
+    out = np.zeros(V)
+    for i in range(V):
+        nb = [area[(i + d) % V] for d in (-2, -1, 1, 2) if V > 2 and (i + d) % V != i]
+        ref = float(np.median(nb)) if nb else area[i]
+        if area[i] < AREA_DROP * ref:
+            out[i] = ref - area[i]
+    return out
 
 
 def camera_azimuths_deg(T_cam_table: np.ndarray) -> np.ndarray:

@@ -136,7 +136,7 @@ from skimage.morphology import remove_small_objects
 from calib.camera import as_K, as_poses, camera_centre_table, project_points, values_at_points
 from calib.target import TargetSpec
 
-from .silhouette_checks import camera_azimuths_deg, camera_spread, camera_still, fill_gaps, frame_status
+from .silhouette_checks import area_shortfall, camera_azimuths_deg, camera_spread, camera_still, fill_gaps, frame_status
 from .silhouette_doubt import (
     Evidence,
     Plate,
@@ -403,6 +403,8 @@ DEEP_FLOOR_MM = 20.0  # ... above this height (lower down, a held cast shadow's 
 DEEP_MM = 4.0  # ... a voxel this deep inside what every other view holds (2 mm closed a teapot's handle loop)
 DEEP_RIM_HELD = 0.65  # ... drawn where this share of a part's rim is held: a notch, not a sliver
 DEEP_LOW_SHARE = 0.03  # ... below DEEP_FLOOR_MM, a notch this share of the view's mask or larger: a foot, not a sliver
+DEEP_LOST_SHARE = 0.5  # ... and, in a view whose area dropped against its neighbours', a part joined to what it
+# holds that makes up this share of what it lacks, doubtful or not: the part of the object it lost
 _DEEP_MAX_VOXELS = 2_000_000  # ... the finer voxels: at most this many (coarser than DEEP_STEP_MM if need be)
 
 
@@ -445,6 +447,19 @@ def _enclosed_parts(cand: np.ndarray, held: np.ndarray, thick: bool = False) -> 
     if thick:
         area = np.bincount(lab.ravel(), minlength=n)
         keep |= (inner >= THICK_RIM_HELD * np.maximum(total, 1)) & (area >= THICK_AREA_PER_RIM * np.maximum(total, 1))
+    keep[0] = False
+    return keep[lab]
+
+
+def _lost_parts(cand: np.ndarray, held: np.ndarray, shortfall_px: float) -> np.ndarray:
+    """The 8-connected parts of ``cand`` (h, w) bool next to ``held`` (h, w) bool, each of at least
+    ``DEEP_LOST_SHARE`` times ``shortfall_px`` pixels (none where that is 0)."""
+    if shortfall_px <= 0:
+        return np.zeros_like(cand)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(cand.astype(np.uint8), connectivity=8)
+    beside = np.zeros(n, bool)
+    beside[np.unique(lab[(cv2.dilate(held.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0) & cand])] = True
+    keep = beside & (stats[:, cv2.CC_STAT_AREA] >= DEEP_LOST_SHARE * shortfall_px)
     keep[0] = False
     return keep[lab]
 
@@ -1332,12 +1347,20 @@ def estimate_silhouettes(images_rgb: np.ndarray, K: np.ndarray, T_cam_table: np.
         # its own shadow (a white teapot 20 deg up: ~730 px, 9 % of its mask, in three views), not the sliver of
         # shaded paper under a belly's overhang that a few views on one side see (a bunny: up to 140 px, 1 %,
         # which gave back a skirt round its foot: 0.42 -> 0.47 % of the diagonal)
+        # A view whose area dropped against its neighbours' (a conservative frame) may have lost a whole part that
+        # it sees against the wall's grey, doubtful or not and not ringed by what it holds: a white figure's
+        # torso, head and arm, in one view of 36 on a light wall (1588 px alone carved deep, of the 1800 its mask
+        # lacked), carved from the hull (1.86 % of the diagonal). Where what it alone carves deep makes up half
+        # of what it lacks, in a part joined to what it holds, that part is held too. Elsewhere such parts are a
+        # few slivers beside a box's roof (<= 350 px, under 5 % of what the view lacked).
         deep, low = carved_deep_alone(masks[used] | unknown[used], K, T[used], radius, height, lit)
+        shortfall = area_shortfall(masks.reshape(V, -1).sum(axis=1))
         for k, i in enumerate(used):
             d = np.zeros((H, W), bool)
             d[box] = doubtful[i]
             held_i = masks[i] | unknown[i]
-            notch = _enclosed_parts(deep[k] & d & ~held_i, held_i)
+            notch = _enclosed_parts(deep[k] & d & ~held_i, held_i) | _lost_parts(deep[k] & ~held_i, held_i,
+                                                                                   float(shortfall[i]))
             foot = _enclosed_parts(low[k] & ~held_i, held_i)
             notch |= remove_small_objects(foot, max_size=max(1, int(DEEP_LOW_SHARE * masks[i].sum())), connectivity=2)
             unknown[i] |= notch

@@ -1374,6 +1374,37 @@ def test_a_notch_neighbouring_views_leave_out_is_found_a_tunnel_many_see_through
     assert kept[notch].all() and not kept[sliver].any()
 
 
+def test_a_whole_part_one_view_lost_is_held_where_its_area_dropped():
+    """One side view of 36 lost the drum's top (from 55 mm up, its rim the room's: not a notch ringed by what
+    it holds): its mask's area drops under ``AREA_DROP`` of its neighbours'. What it alone carves deep inside
+    what every other view holds makes up most of what it lacks: that part is held (_lost_parts), where
+    _enclosed_parts keeps nothing of it. The same part in a view whose area did not drop, or a part smaller
+    than half of what the view lacks, is not held."""
+    from recon.silhouette_checks import AREA_DROP, area_shortfall
+    from recon.silhouettes import DEEP_LOST_SHARE, _enclosed_parts, _lost_parts, carved_deep_alone
+
+    masks, Ts, K = _tunnelled_drum(36)
+    side = 9
+    rows = np.nonzero(masks[side].any(axis=1))[0]
+    top = np.zeros(masks.shape[1:], bool)
+    top[:rows.min() + int(0.35 * (rows.max() - rows.min()))] = True
+    lost = masks[side] & top
+    held = masks.copy()
+    held[side] &= ~lost
+    areas = held.reshape(len(held), -1).sum(axis=1)
+    shortfall = area_shortfall(areas)
+    assert areas[side] < AREA_DROP * np.median(areas) and shortfall[side] > 0.9 * lost.sum()
+    assert not np.delete(shortfall, side).any()
+    deep, _ = carved_deep_alone(held, K, Ts, 60.0, 100.0)
+    cand = deep[side] & ~held[side]
+    assert cand.sum() >= DEEP_LOST_SHARE * shortfall[side]
+    assert not _enclosed_parts(cand, held[side]).any()  # its rim is mostly the room's
+    back = _lost_parts(cand, held[side], float(shortfall[side]))
+    assert back[lost].mean() > 0.7 and not (back & ~lost).any()
+    assert not _lost_parts(cand, held[side], 0.0).any()  # a view whose area did not drop
+    assert not _lost_parts(cand, held[side], 2.1 * cand.sum() / DEEP_LOST_SHARE).any()  # too small a part
+
+
 def test_channel_max_is_the_max_over_the_colour_channels():
     from recon.silhouette_doubt import channel_max
 
