@@ -54,9 +54,9 @@ def frame_status(area_px: np.ndarray, support: np.ndarray, border_px: np.ndarray
     # a thin figure seen side on, or a small object in a wide working volume, covers under 2 % of the
     # cylinder's image in frames whose masks are whole: "empty" is small against the other frames too
     typical = float(np.median(area)) if V else 0.0
+    refs = _neighbour_areas(area)
     for i in range(V):
-        nb = [area[(i + d) % V] for d in (-2, -1, 1, 2) if V > 2 and (i + d) % V != i]
-        ref = float(np.median(nb)) if nb else area[i]
+        ref = refs[i]
         ratio = area[i] / ref if ref > 0 else (1.0 if area[i] == 0 else np.inf)
         quality[i] = float(support[i]) * (min(ratio, 1.0 / ratio) if 0 < ratio < np.inf else 0.0)
         small = area[i] < _MIN_AREA * region_px[i] and area[i] < _TYPICAL_SHARE * typical
@@ -81,18 +81,23 @@ def frame_status(area_px: np.ndarray, support: np.ndarray, border_px: np.ndarray
     return quality, tuple(status)
 
 
-def area_shortfall(area_px: np.ndarray) -> np.ndarray:
-    """(V,) the pixels each frame's mask lacks against its neighbours' median area (two each side in turn
-    order, as :func:`frame_status` weighs it) where it is under ``AREA_DROP`` of it; 0 elsewhere."""
-    area = np.asarray(area_px, np.float64)
+def _neighbour_areas(area: np.ndarray) -> np.ndarray:
+    """(V,) the median area of each frame's neighbours, two each side in turn order (its own without any)."""
     V = len(area)
-    out = np.zeros(V)
+    out = np.array(area, np.float64)
     for i in range(V):
         nb = [area[(i + d) % V] for d in (-2, -1, 1, 2) if V > 2 and (i + d) % V != i]
-        ref = float(np.median(nb)) if nb else area[i]
-        if area[i] < AREA_DROP * ref:
-            out[i] = ref - area[i]
+        if nb:
+            out[i] = float(np.median(nb))
     return out
+
+
+def area_shortfall(area_px: np.ndarray) -> np.ndarray:
+    """(V,) the pixels each frame's mask lacks against its neighbours' median area (as :func:`frame_status`
+    weighs it) where it is under ``AREA_DROP`` of it; 0 elsewhere."""
+    area = np.asarray(area_px, np.float64)
+    ref = _neighbour_areas(area)
+    return np.where(area < AREA_DROP * ref, ref - area, 0.0)
 
 
 def camera_azimuths_deg(T_cam_table: np.ndarray) -> np.ndarray:
