@@ -43,6 +43,7 @@ goes where free space lies under it, the underside taken flat.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -115,10 +116,14 @@ def _warp(img, M, size, nearest=False) -> np.ndarray:
     return cv2.warpPerspective(img, M, size, flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
+def _near(mask: np.ndarray) -> np.ndarray:
+    """(H, W) bool: within 3 px of ``mask``."""
+    return cv2.dilate(mask.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+
+
 def _edges(img_rgb: np.ndarray, mask: np.ndarray, thresholds: tuple[float, float]) -> np.ndarray:
     e = edges(smoothed_grey(img_rgb), thresholds).astype(np.uint8)
-    near = cv2.dilate(mask.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
-    return (cv2.dilate(e, np.ones((3, 3), np.uint8)) > 0) & near
+    return (cv2.dilate(e, np.ones((3, 3), np.uint8)) > 0) & _near(mask)
 
 
 def _sections(hull: VoxelHull, heights, x0, z0, shape, px) -> list[np.ndarray]:
@@ -157,6 +162,12 @@ class Sweep:
     @property
     def size(self) -> tuple[int, int]:
         return (self.shape[1], self.shape[0])
+
+    def within(self, masks) -> Sweep:
+        """This sweep with each view's edges kept within 3 px of ``masks`` (V, H, W) bool, a part of the masks
+        it was swept in (the flat tops' sure silhouettes, of the openings' silhouettes and unknown pixels)."""
+        return dataclasses.replace(self, edges=[(e & _near(m)).astype(np.uint8)
+                                                for e, m in zip(self.edges, masks, strict=True)])
 
     def rectify(self, image: np.ndarray, T: np.ndarray, h: float, nearest: bool = False) -> np.ndarray:
         """``image`` (seen from ``T``) warped onto the plane ``y = h``, on the sweep's raster (0 off the image)."""
@@ -223,7 +234,8 @@ def sweep(images_rgb, masks, K, Ts, hull: VoxelHull) -> Sweep | None:
     """The plane sweep of the views' edges over the hull's height (None for an empty hull).
 
     ``masks``: (V, H, W) bool, where each view's edges are the object's: those within 3 px are swept (the
-    flat tops read the sure silhouettes; the openings their unknown pixels too, see ``turntable.reconstruct``).
+    openings read the silhouettes' unknown pixels too; the flat tops the sure silhouettes, :meth:`Sweep.within`;
+    see ``turntable.reconstruct``).
     """
     inside = np.asarray(hull.values) > 0
     if not inside.any():

@@ -542,6 +542,7 @@ def test_the_openings_read_the_edges_the_silhouettes_left_in_doubt_and_the_flat_
     import turntable.stages.fusion as fusion
 
     real, real_sweep, real_carve = sil.estimate_silhouettes, faces.sweep, faces.carve_above_faces
+    real_within = faces.Sweep.within
     tops = []
 
     def top_in_doubt(*a, **k):
@@ -558,9 +559,17 @@ def test_the_openings_read_the_edges_the_silhouettes_left_in_doubt_and_the_flat_
 
     read = {}  # id of each sweep -> whether its masks held every view's top
 
+    def holds_tops(masks) -> bool:
+        return all(m[top].all() for m, top in zip(np.asarray(masks), tops, strict=True))
+
     def sweep_spy(images_rgb, masks, *a, **k):
         swept = real_sweep(images_rgb, masks, *a, **k)
-        read[id(swept)] = all(m[top].all() for m, top in zip(np.asarray(masks), tops, strict=True))
+        read[id(swept)] = holds_tops(masks)
+        return swept
+
+    def within_spy(self, masks):
+        swept = real_within(self, masks)
+        read[id(swept)] = read[id(self)] and holds_tops(masks)
         return swept
 
     used = {}
@@ -575,6 +584,7 @@ def test_the_openings_read_the_edges_the_silhouettes_left_in_doubt_and_the_flat_
 
     monkeypatch.setattr(sil, "estimate_silhouettes", top_in_doubt)
     monkeypatch.setattr(faces, "sweep", sweep_spy)
+    monkeypatch.setattr(faces.Sweep, "within", within_spy)
     monkeypatch.setattr(faces, "carve_above_faces", carve_spy)
     monkeypatch.setattr(fusion, "run_fusion", fusion_spy)
     args = _automatic_silhouettes_args(scene, tmp_path / "scan")

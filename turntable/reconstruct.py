@@ -181,13 +181,14 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
     from recon.faces import carve_above_faces, same_top, sweep
 
     with progress.stage("flat tops"):  # the roof no silhouette carves over a plinth's or a box's top
-        # the views' edges over horizontal planes, twice. The openings read them where the views may show the
-        # object: a round object's top seen against the room turns alike in every view, the room's plate holds it
-        # and the silhouettes leave it unknown (a cup's rim, in 27 of 36 views of a dark room). The flat tops
-        # read them in the sure silhouettes: the doubt also holds what stands on a top (a white figure's leg,
+        # the views' edges over horizontal planes. The openings read them where the views may show the object:
+        # a round object's top seen against the room turns alike in every view, the room's plate holds it and
+        # the silhouettes leave it unknown (a cup's rim, in 27 of 36 views of a dark room). The flat tops read
+        # them in the sure silhouettes only: the doubt also holds what stands on a top (a white figure's leg,
         # unknown in some views), whose outline a few mm up falls inside the top, which is then not flat
         swept = sweep(images_rgb, masks | unknown, K, Ts, hull)
-        hull, roofs = carve_above_faces(hull, images_rgb, masks, K, Ts, sweep(images_rgb, masks, K, Ts, hull))
+        hull, roofs = carve_above_faces(hull, images_rgb, masks, K, Ts,
+                                        None if swept is None else swept.within(masks))
     tops: list[list] = []  # [face, mm3]: a top found again half a mm higher is noted once, with both volumes
     for face, mm3 in roofs:
         same = next((t for t in tops if same_top(face, t[0])), None)
