@@ -340,7 +340,7 @@ def _inside_of(op: Opening, hull: VoxelHull, inside: np.ndarray, solid: np.ndarr
     cur = top.copy()
     waiting = top & ~inside[:, jr, :]  # (the columns whose hull has not started yet)
     for j in range(jr, -1, -1):
-        lateral = lateral_mm(_walled(inside[:, j, :], cols), v)
+        lateral = lateral_rim if j == jr else lateral_mm(_walled(inside[:, j, :], cols), v)
         ok = inside[:, j, :] & (lateral > op.wall_mm) & ((j - floor_y + 0.5) * v > op.wall_mm)
         if op.floor_mm is not None:
             ok &= y[j] > op.floor_mm
