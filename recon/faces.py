@@ -58,8 +58,8 @@ from .image_edges import edge_thresholds, edges, smoothed_grey
 from .silhouette_doubt import channel_max, rim_counts
 from .types import VoxelHull
 
-__all__ = ["Face", "Slab", "Sweep", "sweep", "find_faces", "carve_above_faces", "carve_under_slabs", "same_top",
-           "uncovered_share", "hull_uncovered_share", "shell_points", "coverage"]
+__all__ = ["Face", "Slab", "Sweep", "sweep", "find_faces", "carve_above_faces", "carve_under_slabs", "space_under",
+           "same_top", "uncovered_share", "hull_uncovered_share", "shell_points", "coverage"]
 
 STEP_MM = 0.5  # the sweep's step in height
 PX_PER_MM = 3.0  # the planes' raster ...
@@ -533,6 +533,7 @@ SLAB_BREAK_MM = 3.0
 FOOTPRINT_MM = 3.0  # a top's footprint: the hull's section just under it within this of the face
 TIP_MM = 2.0  # under a slab's unseen voxels the hull may go on this far (the wedge's tip, which views graze)
 _CHUNK_COLUMNS = 20_000
+UNDER_MARGIN_MM = 2.5  # space_under: the footprint grown this much (a voxel or two past the seat's section)
 
 
 @dataclass(frozen=True)
@@ -578,6 +579,31 @@ def _hidden_counts(slab: Slab, pts: np.ndarray, Ts) -> np.ndarray:
         P = c + s[:, None] * (pts - c)
         count += _on_raster(slab.footprint, slab.top, P[:, 0], P[:, 2])
     return count
+
+
+def space_under(slabs: list[Slab], hull: VoxelHull) -> np.ndarray:
+    """Bool, the hull's grid: the columns of each slab's footprint that ``hull`` holds just under the underside,
+    grown by ``UNDER_MARGIN_MM``, from there down to the table (:func:`recon.shadows.carve_cast_shadows` looks
+    for a skirt up to the seat there). The margin: what the silhouettes hold under a seat bulges past the
+    seat's own section by a voxel or two, and its sides there would hide the paper between the legs."""
+    o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
+    inside = np.asarray(hull.values) > 0
+    nx_, _, nz_ = inside.shape
+    gx, gz = np.meshgrid(np.arange(nx_), np.arange(nz_), indexing="ij")
+    r = max(int(math.ceil(UNDER_MARGIN_MM / v)), 1)
+    out = np.zeros(inside.shape, bool)
+    if not inside.any():
+        return out
+    low = int(np.flatnonzero(inside.any(axis=(0, 2)))[0])  # the hull's lowest layer: the table
+    for slab in slabs:
+        iy_top = int(math.floor((slab.underside_mm - o[1]) / v - 0.5))  # as carve_under_slabs takes it
+        if iy_top < 1:
+            continue
+        on = _on_raster(slab.footprint, slab.top, o[0] + gx * v, o[2] + gz * v) & inside[:, iy_top, :]
+        on = cv2.dilate(on.astype(np.uint8), np.ones((2 * r + 1,) * 2, np.uint8)) > 0
+        on &= ~inside[:, low: iy_top + 1, :].all(axis=1)  # a leg stands from the table up to the underside
+        out[:, : iy_top + 1, :] |= on[:, None, :]
+    return out
 
 
 def carve_under_slabs(hull: VoxelHull, faces: list[Face], masks, K, Ts) -> tuple[VoxelHull, list[tuple[Slab, float]]]:

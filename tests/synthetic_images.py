@@ -262,6 +262,35 @@ def render_target_photo(spec: TargetSpec, K, T_cam_table, size, *, rng: np.rando
     return SyntheticPhoto(image=out, K=K, T_cam_table=T, occluder_mask=occ_mask)
 
 
+SEAT_LO, SEAT_HI = np.array([-27.0, 45.0, -27.0]), np.array([27.0, 51.0, 27.0])  # a stool's seat, 6 mm thick,
+STOOL = [(SEAT_LO, SEAT_HI)] + [(np.array([x - 2.5, 0.0, z - 2.5]), np.array([x + 2.5, 45.0, z + 2.5]))
+                               for x in (-24.5, 24.5) for z in (-24.5, 24.5)]  # ... on four legs at its corners
+
+
+def box_hit(o, d, lo, hi):
+    """Distance along each ray (origin ``o``, unit directions ``d`` (N, 3)) to the box (``lo``, ``hi``), and the
+    normal there (inf where it misses)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0, t1 = (lo - o) / d, (hi - o) / d
+    near, far = np.minimum(t0, t1), np.maximum(t0, t1)
+    t_in, t_out = near.max(1), far.min(1)
+    hit = (t_in <= t_out) & (t_out > 0)
+    axis = near.argmax(1)
+    n = np.zeros_like(d)
+    n[np.arange(len(d)), axis] = -np.sign(d[np.arange(len(d)), axis])
+    return np.where(hit, t_in, np.inf), n
+
+
+def boxes_hit(o, d, boxes):
+    """Distance along each ray to the nearest of the boxes (lo, hi), and the normal there."""
+    t, n = np.full(len(d), np.inf), np.zeros_like(d)
+    for lo, hi in boxes:
+        tb, nb = box_hit(o, d, lo, hi)
+        nearer = tb < t
+        t, n[nearer] = np.where(nearer, tb, t), nb[nearer]
+    return t, n
+
+
 def hull_holds(hull, pts: np.ndarray) -> np.ndarray:
     """(N,) bool: the points' voxels are inside the hull (``recon.types.VoxelHull``; False off its grid)."""
     idx = np.rint((pts - hull.origin_table) / hull.voxel_mm).astype(int)

@@ -8,10 +8,10 @@ import dataclasses
 
 import numpy as np
 import pytest
-from synthetic_images import hull_holds, turntable_ring
+from synthetic_images import SEAT_HI, SEAT_LO, STOOL, box_hit, boxes_hit, hull_holds, turntable_ring
 
 from recon.carving import carve_hull
-from recon.faces import carve_above_faces, carve_under_slabs, find_faces
+from recon.faces import carve_above_faces, carve_under_slabs, find_faces, space_under
 from recon.sides import flatten_sides
 
 W, H, F_PX = 640, 480, 750.0
@@ -31,15 +31,7 @@ def _rays(T):
 
 def _box_hit(o, d, lo=BOX_LO, hi=BOX_HI):
     """Distance along each ray to the box, and the normal there (inf where it misses)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t0, t1 = (lo - o) / d, (hi - o) / d
-    near, far = np.minimum(t0, t1), np.maximum(t0, t1)
-    t_in, t_out = near.max(1), far.min(1)
-    hit = (t_in <= t_out) & (t_out > 0)
-    axis = near.argmax(1)
-    n = np.zeros_like(d)
-    n[np.arange(len(d)), axis] = -np.sign(d[np.arange(len(d)), axis])
-    return np.where(hit, t_in, np.inf), n
+    return box_hit(o, d, lo, hi)
 
 
 def _sphere_hit(o, d, centre, radius):
@@ -89,21 +81,8 @@ def _column_hit(o, d):
     return t, band
 
 
-SLAB_LO, SLAB_HI = np.array([-27.0, 45.0, -27.0]), np.array([27.0, 51.0, 27.0])  # a stool's seat, 6 mm thick,
-STOOL = [(SLAB_LO, SLAB_HI)] + [(np.array([x - 2.5, 0.0, z - 2.5]), np.array([x + 2.5, 45.0, z + 2.5]))
-                               for x in (-24.5, 24.5) for z in (-24.5, 24.5)]  # ... on four legs at its corners
 BODY_LO, BODY_HI = np.array([-20.0, 0.0, -10.0]), np.array([20.0, 35.0, 10.0])  # a box under a lid 5 mm thick
 LIDBOX = [(BODY_LO, BODY_HI), (np.array([-28.0, 35.0, -18.0]), np.array([28.0, 40.0, 18.0]))]  # overhanging 8 mm
-
-
-def _boxes_hit(o, d, boxes):
-    """Distance along each ray to the nearest of the boxes (lo, hi), and the normal there."""
-    t, n = np.full(len(d), np.inf), np.zeros_like(d)
-    for lo, hi in boxes:
-        tb, nb = _box_hit(o, d, lo, hi)
-        nearer = tb < t
-        t, n[nearer] = np.where(nearer, tb, t), nb[nearer]
-    return t, n
 
 
 def _render(T_all, shape: str, rng, restyle=None):
@@ -122,7 +101,7 @@ def _render(T_all, shape: str, rng, restyle=None):
         elif shape == "lid":
             t, n = _lid_hit(o, d)
         elif shape in ("stool", "lidbox"):
-            t, n = _boxes_hit(o, d, STOOL if shape == "stool" else LIDBOX)
+            t, n = boxes_hit(o, d, STOOL if shape == "stool" else LIDBOX)
         else:
             t, n = _sphere_hit(o, d, np.array([0.0, 30.0, 0.0]), 30.0)
         light = -d.mean(0) + np.array([0.0, 1.2, 0.0])
@@ -196,7 +175,7 @@ def test_a_seats_underside_edge_is_no_top_and_the_seat_keeps_its_inside():
     faces = find_faces(images, masks, K, T, hull)
     assert [round(f.height_mm) for f in faces] == [51]
     carved, _ = carve_above_faces(hull, images, masks, K, T)
-    g = _inner_grid(SLAB_LO, SLAB_HI, hull.voxel_mm)
+    g = _inner_grid(SEAT_LO, SEAT_HI, hull.voxel_mm)
     assert hull_holds(hull, g).all()
     assert hull_holds(carved, g).all(), (~hull_holds(carved, g)).sum()
 
@@ -247,6 +226,26 @@ def test_the_space_under_a_seat_that_no_view_sees_is_carved(stool_scene):
     true = sum(np.prod(hi - lo) for lo, hi in STOOL)
     assert (roofed.values > 0).sum() * v ** 3 > 1.4 * true
     assert (carved.values > 0).sum() * v ** 3 < 1.15 * true
+
+
+def test_the_space_under_a_found_seat_holds_the_wedge_and_not_the_legs(stool_scene):
+    """The space a second cast-shadow pass looks in (recon.faces.space_under): under the found seat's footprint,
+    below its underside, where the hull does not stand from the table up to it. The wedge under the middle is in
+    it; the legs, the seat and anything beyond the footprint's margin are not."""
+    masks, T, roofed, tops = stool_scene
+    _, slabs = carve_under_slabs(roofed, tops, masks, K, T)
+    under = space_under([slab for slab, _ in slabs], roofed)
+    o, v = roofed.origin_table, roofed.voxel_mm
+
+    def at(pts):
+        idx = np.rint((pts - o) / v).astype(int)
+        return under[tuple(idx.T)]
+
+    assert at(np.array([[x, y, z] for x in (-10.0, 0.0, 10.0) for z in (-10.0, 0.0, 10.0)
+                        for y in (25.0, 35.0, 43.0)])).all()
+    for lo, hi in STOOL:  # the seat, and every leg standing on the table
+        assert not at(_inner_grid(lo, hi, v)).any()
+    assert not at(np.array([[0.0, 30.0, 35.0], [35.0, 30.0, 0.0], [0.0, 47.0, 0.0]])).any()
 
 
 def test_a_needle_a_few_masks_hold_under_the_seat_goes_with_the_wedge(stool_scene):

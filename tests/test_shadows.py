@@ -4,9 +4,11 @@ shadow carve nothing."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
-from synthetic_images import hull_holds, turntable_ring
+from synthetic_images import STOOL, box_hit, boxes_hit, hull_holds, turntable_ring
 
 from recon.carving import carve_hull
 from recon.shadows import carve_cast_shadows
@@ -49,27 +51,15 @@ def _foot(o, d):
     return np.where((disc >= 0) & (t > 0) & (y >= 0.0) & (y <= FOOT_H), t, np.inf)
 
 
-def _box(o, d):
-    """Distance along the rays to the box (inf where they miss), and the normal there."""
-    o = np.broadcast_to(o, d.shape)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t0, t1 = (BOX_LO - o) / d, (BOX_HI - o) / d
-    near, far = np.minimum(t0, t1), np.maximum(t0, t1)
-    t_in, t_out = near.max(1), far.min(1)
-    axis = near.argmax(1)
-    n = np.zeros_like(d)
-    n[np.arange(len(d)), axis] = -np.sign(d[np.arange(len(d)), axis])
-    return np.where((t_in <= t_out) & (t_in > 0), t_in, np.inf), n
-
-
 def _render(T_all, rng, with_shadow_in_mask: bool, shape: str = "teapot"):
     """White body on white paper under a key light fixed to the camera; (images, masks, unknown)."""
-    images, masks = [], []
+    images, masks, doubt = [], [], []
     for T in T_all:
         o, d = _rays(T)
         L = T[:3, :3].T @ (L_CAM / np.linalg.norm(L_CAM))  # the light turns with the camera about the table
-        if shape == "box":
-            t, n = _box(o, d)
+        if shape in ("box", "stool"):
+            parts = [(BOX_LO, BOX_HI)] if shape == "box" else STOOL
+            t, n = boxes_hit(o, d, parts)
             p = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
         else:
             tb, tf = _ball(o, d), _foot(o, d)
@@ -82,8 +72,8 @@ def _render(T_all, rng, with_shadow_in_mask: bool, shape: str = "teapot"):
             tp = -o[1] / d[:, 1]
         q = o + np.where(tp > 0, tp, 0.0)[:, None] * d  # the plane point each ray meets
         Ls = np.tile(L, (len(d), 1))
-        if shape == "box":
-            shadowed = np.isfinite(_box(q + 1e-6 * Ls, Ls)[0])
+        if shape in ("box", "stool"):
+            shadowed = np.isfinite(boxes_hit(q + 1e-6 * Ls, Ls, parts)[0])
         else:
             shadowed = np.isfinite(_ball(q + 1e-6 * Ls, Ls)) | np.isfinite(_foot(q + 1e-6 * Ls, Ls))
         paper = 0.9 * (AMBIENT + DIFFUSE * L[1] * ~shadowed)
@@ -94,8 +84,11 @@ def _render(T_all, rng, with_shadow_in_mask: bool, shape: str = "teapot"):
         images.append(rgb.reshape(H, W, 3).astype(np.uint8))
         held = obj | (with_shadow_in_mask & on_paper & shadowed & (np.hypot(q[:, 0], q[:, 2]) < 60.0))
         masks.append(held.reshape(H, W))
+        # the paper a stool's views see under its seat, between the legs, lit or shaded: doubt (as on a light wall)
+        between = np.isfinite(box_hit(o, d, np.array([-27.0, 0.0, -27.0]), np.array([27.0, 45.0, 27.0]))[0])
+        doubt.append((~held & on_paper & (shape == "stool") & between).reshape(H, W))
     masks = np.array(masks)
-    return images, masks, np.zeros_like(masks)
+    return images, masks, np.array(doubt)
 
 
 def _hull(masks, T):
@@ -392,3 +385,45 @@ def test_the_guard_kept_shallow_gives_back_only_what_lies_just_behind_the_neares
     body = _points_in_body(1.5 * hull.voxel_mm, rng)
     body = body[hull_holds(hull, body)]
     assert hull_holds(shallow, body).mean() > 0.999
+
+
+def test_under_a_seat_the_skirt_is_looked_for_up_to_the_underside():
+    """A white stool (seat 54 mm wide, its underside 45 mm up) whose views hold its shadow in their masks and the
+    lit paper they see between the legs as doubt (as on a light wall). Once the skirt within SKIRT_MM is carved
+    a block floats under the seat, and the rays that see the paper between the legs meet it: a pass that looks
+    only up to SKIRT_MM takes none of it. Given the space under the seat (recon.faces.space_under: the legs,
+    standing from the table up to the underside, are not in it), the pass takes the block (21-26 mm) but the
+    tip of the wedge no view sees (recon.faces.carve_under_slabs's), and keeps the seat and the legs whole."""
+    from recon.faces import Face, Slab, space_under
+    from recon.shadows import SKIRT_MM
+
+    T = turntable_ring(36, look_y_mm=25.0)
+    images, masks, unknown = _render(T, np.random.default_rng(4), with_shadow_in_mask=True, shape="stool")
+    hull = carve_hull(masks | unknown, K, T, radius_mm=60.0, height_mm=70.0, resolution=96, max_rejections=0)
+    o, v = hull.origin_table, hull.voxel_mm
+    X, Y, Z = np.meshgrid(*(o[i] + np.arange(hull.values.shape[i]) * v for i in range(3)), indexing="ij")
+    legs = np.zeros(X.shape, bool)
+    for lo, hi in STOOL[1:]:
+        c, half = (lo + hi) / 2, (hi - lo) / 2
+        legs |= (np.abs(X - c[0]) < half[0] + 1.0) & (np.abs(Z - c[2]) < half[2] + 1.0)
+    vals = hull.values.copy()  # the skirt round the legs within SKIRT_MM, carved by the first pass
+    vals[(np.abs(X) < 30.0) & (np.abs(Z) < 30.0) & ~legs & (Y <= SKIRT_MM)] = -0.5 * v
+    floating = dataclasses.replace(hull, values=vals)
+    block = o + np.argwhere((np.abs(X) < 27.0) & (np.abs(Z) < 27.0) & ~legs & (Y > 21.0) & (Y < 26.0) & (vals > 0)) * v
+    assert len(block) > 5000  # the block is there (else nothing is tested)
+    seat = Face(51.0, np.ones((55, 55), bool), np.zeros((55, 55, 3), np.float32), (-27.0, -27.0), 1.0)
+    under = space_under([Slab(seat, 45.0, seat.region)], floating)
+    assert under[(np.abs(X) < 20.0) & (np.abs(Z) < 20.0) & (Y < 44.0)].all()
+    assert not under[(Y > 45.0) | (np.abs(X) > 33.0) | (np.abs(Z) > 33.0)].any()
+    for lo, hi in STOOL[1:]:  # a leg stands from the table up to the underside: not in the space under the seat
+        c, half = (lo + hi) / 2, (hi - lo) / 2
+        assert not under[(np.abs(X - c[0]) < half[0] - v) & (np.abs(Z - c[2]) < half[2] - v)].any()
+    first, _ = carve_cast_shadows(floating, images, masks, unknown, K, T, guard_depth_mm=3.0)
+    assert hull_holds(first, block).all()  # up to SKIRT_MM only: nothing of the block
+    out, info = carve_cast_shadows(floating, images, masks, unknown, K, T, guard_depth_mm=3.0, under=under)
+    assert info is not None
+    assert hull_holds(out, block).mean() < 0.1  # (what is left: over the middle, the wedge's tip reaches ~24 mm)
+    rng = np.random.default_rng(5)
+    for lo, hi in STOOL:  # the seat and every leg, whole (1.5 voxels in from their faces)
+        p = rng.uniform(lo + 1.5 * v, hi - 1.5 * v, (2000, 3))
+        assert hull_holds(out, p).all()

@@ -200,21 +200,31 @@ def _run(opts: ReconstructOptions, progress: Progress, recorder, folder: OutputF
         hull_note(f"a flat top {face.height_mm:.1f} mm above the table ({face.area_mm2:.0f} mm²): the roof the "
                   f"silhouettes leave over it carved ({hull_stage.volume_text(mm3)})")
     if roofs:
-        from recon.faces import carve_under_slabs
+        from recon.faces import carve_under_slabs, space_under
 
+        tops_found = [face for face, _ in roofs]
+        roofed = hull
         with progress.stage("under slabs"):  # the wedge the silhouettes leave under a seat, which no view sees
-            hull, unders = carve_under_slabs(hull, [face for face, _ in roofs], masks, K, Ts)
+            hull, unders = carve_under_slabs(hull, tops_found, masks, K, Ts)
         for slab, mm3 in unders:
             hull_note(f"a slab under the flat top {slab.top.height_mm:.1f} mm above the table, its underside at "
                       f"{slab.underside_mm:.1f} mm: the space under it that no view sees, between what the views "
                       f"do see there, carved ({hull_stage.volume_text(mm3)})")
-        if unders and opts.masks_dir is None:  # the skirt under the slab, seen now that the wedge over it is gone
+        if unders and opts.masks_dir is None:  # the skirt under the slab, seen now that the wedge over it is gone,
+            # looked for up to the underside: the paper between the legs, held (doubt or mask), lit or in the seat's
+            # shadow; the legs, standing on the table, stay what hides the paper (recon.faces.space_under)
             with progress.stage("cast shadows"):
                 hull, skirt = carve_cast_shadows(hull, images_rgb, masks, unknown, K, Ts,
-                                                 guard_depth_mm=GUARD_DEPTH_MM)
+                                                 guard_depth_mm=GUARD_DEPTH_MM,
+                                                 under=space_under([slab for slab, _ in unders], roofed))
             if skirt is not None:
-                hull_note(f"under the slab, the cast shadow's skirt within {SKIRT_MM:.0f} mm of the table carved "
-                          f"({hull_stage.volume_text(skirt.volume_mm3)})")
+                hull_note(f"under the slab, the cast shadow's skirt carved up to the underside, where the views "
+                          f"see the paper between the legs ({hull_stage.volume_text(skirt.volume_mm3)})")
+                with progress.stage("under slabs"):  # the wedge again: what hung under it is gone
+                    hull, again = carve_under_slabs(hull, tops_found, masks, K, Ts)
+                for slab, mm3 in again:
+                    hull_note(f"under the slab at {slab.underside_mm:.1f} mm, the rest of the space no view sees, "
+                              f"above the skirt carved, carved ({hull_stage.volume_text(mm3)})")
 
     from recon.sides import flatten_sides
 
