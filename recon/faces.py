@@ -583,8 +583,10 @@ def _hidden_counts(slab: Slab, pts: np.ndarray, Ts) -> np.ndarray:
 
 def space_under(slabs: list[Slab], hull: VoxelHull) -> np.ndarray:
     """Bool, the hull's grid: the columns of each slab's footprint that ``hull`` holds just under the underside,
-    grown by ``UNDER_MARGIN_MM``, from there down to the table (:func:`recon.shadows.carve_cast_shadows` looks
-    for a skirt up to the seat there). The margin: what the silhouettes hold under a seat bulges past the
+    grown by ``UNDER_MARGIN_MM``, from there down to the table, but for the columns ``hull`` holds all the way
+    from the table up to the underside: a leg, which stands there (:func:`recon.shadows.carve_cast_shadows` looks
+    for a skirt up to the seat in the rest, and the legs, left out, still hide the paper behind them and keep
+    their faces of the shadow's grey). The margin: what the silhouettes hold under a seat bulges past the
     seat's own section by a voxel or two, and its sides there would hide the paper between the legs."""
     o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
     inside = np.asarray(hull.values) > 0
