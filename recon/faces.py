@@ -581,6 +581,17 @@ def _hidden_counts(slab: Slab, pts: np.ndarray, Ts) -> np.ndarray:
     return count
 
 
+def _slab_columns(slab: Slab, inside: np.ndarray, o: np.ndarray, v: float) -> tuple[int, np.ndarray] | None:
+    """The grid's highest layer whose centres lie under the slab's underside, and the (Nx, Nz) columns of its
+    footprint that ``inside`` (the hull's grid, bool) holds there; None where no layer is under it."""
+    iy_top = int(math.floor((slab.underside_mm - o[1]) / v - 0.5))
+    if iy_top < 1:
+        return None
+    nx_, _, nz_ = inside.shape
+    gx, gz = np.meshgrid(np.arange(nx_), np.arange(nz_), indexing="ij")
+    return iy_top, _on_raster(slab.footprint, slab.top, o[0] + gx * v, o[2] + gz * v) & inside[:, iy_top, :]
+
+
 def space_under(slabs: list[Slab], hull: VoxelHull) -> np.ndarray:
     """Bool, the hull's grid: the columns of each slab's footprint that ``hull`` holds just under the underside,
     grown by ``UNDER_MARGIN_MM``, from there down to the table, but for the columns ``hull`` holds all the way
@@ -590,18 +601,16 @@ def space_under(slabs: list[Slab], hull: VoxelHull) -> np.ndarray:
     seat's own section by a voxel or two, and its sides there would hide the paper between the legs."""
     o, v = np.asarray(hull.origin_table, float), float(hull.voxel_mm)
     inside = np.asarray(hull.values) > 0
-    nx_, _, nz_ = inside.shape
-    gx, gz = np.meshgrid(np.arange(nx_), np.arange(nz_), indexing="ij")
     r = max(int(math.ceil(UNDER_MARGIN_MM / v)), 1)
     out = np.zeros(inside.shape, bool)
     if not inside.any():
         return out
     low = int(np.flatnonzero(inside.any(axis=(0, 2)))[0])  # the hull's lowest layer: the table
     for slab in slabs:
-        iy_top = int(math.floor((slab.underside_mm - o[1]) / v - 0.5))  # as carve_under_slabs takes it
-        if iy_top < 1:
+        cols = _slab_columns(slab, inside, o, v)
+        if cols is None:
             continue
-        on = _on_raster(slab.footprint, slab.top, o[0] + gx * v, o[2] + gz * v) & inside[:, iy_top, :]
+        iy_top, on = cols
         on = cv2.dilate(on.astype(np.uint8), np.ones((2 * r + 1,) * 2, np.uint8)) > 0
         on &= ~inside[:, low: iy_top + 1, :].all(axis=1)  # a leg stands from the table up to the underside
         out[:, : iy_top + 1, :] |= on[:, None, :]
@@ -640,13 +649,11 @@ def carve_under_slabs(hull: VoxelHull, faces: list[Face], masks, K, Ts) -> tuple
         inside = vals > 0
         h = slab.underside_mm
         # the footprint's columns of the grid, and their voxels from the underside down
-        iy_top = int(math.floor((h - o[1]) / v - 0.5))  # the highest layer whose centre lies under the underside
-        if iy_top < 1:
+        cols = _slab_columns(slab, inside, o, v)
+        if cols is None:
             continue
-        nx_, _, nz_ = inside.shape
-        gx, gz = np.meshgrid(np.arange(nx_), np.arange(nz_), indexing="ij")
-        on = _on_raster(slab.footprint, face, o[0] + gx * v, o[2] + gz * v)
-        cx, cz = np.nonzero(on & inside[:, iy_top, :])
+        iy_top, on = cols
+        cx, cz = np.nonzero(on)
         if not len(cx):
             continue
         # per column, from the underside down: the hull's voxels, and those no view but one sees (in chunks of
