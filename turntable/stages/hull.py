@@ -117,6 +117,35 @@ def _rejoined(joined: int) -> str:
                                   f"hull before the split held the gap)")
 
 
+def _seen_back(cut, before, masks, dropped, K, Ts, vol) -> tuple[object, float, float]:
+    """The hull ``cut`` carved after a split of the doubt off the volume's outline, with what the views see inside
+    the object back where the split took it: ``(hull, lost, mm^3 back)``.
+
+    ``before``: the hull carved before the split; ``dropped``: the pixels each view's split took. ``lost`` is the
+    largest share of a view's sure silhouette (``masks``) that ``before`` covers and the result does not
+    (:func:`recon.faces.hull_uncovered_share`). Where the split alone leaves more than ``SPLIT_MAX_UNCOVERED``
+    uncovered, it took a part of the object with the wall, and :func:`recon.carving.keep_seen_inside` gives back
+    the voxels more views see inside their silhouettes than hold them as the wall (a white chair's back on a
+    light wall: 18 % of a view's silhouette uncovered, 0.01 % after, the fin of wall behind it still carved).
+    """
+    from recon.carving import keep_seen_inside
+    from recon.faces import hull_uncovered_share
+
+    from .volume import SPLIT_MAX_UNCOVERED
+
+    lost = hull_uncovered_share(before, cut, masks, K, Ts)
+    if lost <= SPLIT_MAX_UNCOVERED:
+        return cut, lost, 0.0
+    seen, back_mm3 = keep_seen_inside(cut, before, masks, dropped, K, Ts, vol.radius_mm, vol.height_mm)
+    return seen, hull_uncovered_share(before, seen, masks, K, Ts), back_mm3
+
+
+def _seen(back_mm3: float) -> str:
+    """The summary's words for what :func:`_seen_back` gave back (empty for nothing)."""
+    return "" if back_mm3 <= 0 else (f" ({back_mm3 / 1000:.1f} cm³ of what it took, inside the object's sure "
+                                     f"silhouette in more views than held it as the wall, given back)")
+
+
 def join_pieces(hull, floating: list[float], carve_at, k0: int, k_max: int) -> tuple[object, list[float], str | None]:
     """The hull in one piece where tolerating a few more views' background makes it one: ``(hull, floating, note)``.
 
@@ -145,7 +174,6 @@ def join_pieces(hull, floating: list[float], carve_at, k0: int, k_max: int) -> t
 def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progress, ws, intr=None) -> HullStage:
     """Silhouettes and hull in a working volume grown until the object fits (or the view ends)."""
     from recon.carving import drop_floating_bodies, rejoin_cut_off
-    from recon.faces import hull_uncovered_share
 
     from .volume import (
         MIN_TOUCH_VIEWS,
@@ -258,11 +286,14 @@ def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progres
                     unsplit = hull
                     sil, hull, pruned = tried[choice]
                     hull, joined = rejoin_cut_off(hull, unsplit)
+                    hull, _, back_mm3 = _seen_back(hull, unsplit, sil.masks[keep],
+                                                   first.unknown[keep] & ~sil.unknown[keep] & ~sil.masks[keep], K,
+                                                   Ts[keep], vol)
                     doubtful_wall.append(f"WARNING: {len(pruned)} view(s) lost the doubtful pixels that ran to the "
                                          f"working volume's outline (a wall of the object's colour), {how}, and the "
                                          f"hull {'now fits' if _fits(hull) else 'still reaches it'}"
-                                         f"{_rejoined(joined)}; parts of the object with the wall's colour may be "
-                                         f"missing (a dark or coloured backdrop avoids this)")
+                                         f"{_rejoined(joined)}{_seen(back_mm3)}; parts of the object with the "
+                                         f"wall's colour may be missing (a dark or coloured backdrop avoids this)")
                 progress.note(f"working volume: {'; '.join(doubtful_wall)}")
                 why = []
             elif automatic:
@@ -276,18 +307,22 @@ def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progres
                     cut.unknown[keep] = unknown
                     h_cut = carve(cut, keep, stage_key(key, "doubt off the outline", False), vol)
                     h_cut, joined = rejoin_cut_off(h_cut, hull)
-                    # and where it leaves the views' sure silhouettes covered: the pieces are the wall's fin, not a
-                    # part of the object (a white figure on a light wall, seed 13: its head, of the wall's grey and
-                    # joined to it on its shaded side, went with the wall in 19 views of 36, and 5 % of a view's
-                    # mask lost its hull: 1.17 % of the diagonal; the splits made on 27 other renders left at most
-                    # 1.9 % of a view's mask, the chair's legs on a light wall)
-                    lost = hull_uncovered_share(hull, h_cut, sil.masks[keep], K, Ts[keep]) \
-                        if _fits(h_cut) and _bodies(h_cut) <= _bodies(hull) else None
+                    # and where it leaves the views' sure silhouettes covered (what the views see inside given
+                    # back, _seen_back): the pieces are the wall's fin, not a part of the object (a white figure on
+                    # a light wall, seed 13: its head, of the wall's grey and joined to it on its shaded side, went
+                    # with the wall in 19 views of 36, and 5 % of a view's mask lost its hull: 1.17 % of the
+                    # diagonal; the splits made on 27 other renders left at most 1.9 % of a view's mask, the
+                    # chair's legs on a light wall)
+                    h_cut, lost, back_mm3 = _seen_back(h_cut, hull, sil.masks[keep],
+                                                       sil.unknown[keep] & ~unknown & ~sil.masks[keep], K, Ts[keep],
+                                                       vol)
+                    lost = lost if _fits(h_cut) and _bodies(h_cut) <= _bodies(hull) else None
                     if lost is not None and lost <= SPLIT_MAX_UNCOVERED:
                         sil, hull = cut, h_cut
                         doubtful_wall.append(f"{len(pruned)} view(s) lost the doubtful pixels that ran to the "
                                              f"working volume's outline (a wall of the object's colour), split "
-                                             f"from the object along the image's edges{_rejoined(joined)}")
+                                             f"from the object along the image's edges{_rejoined(joined)}"
+                                             f"{_seen(back_mm3)}")
                         progress.note(f"working volume: {doubtful_wall[-1]}")
                     elif lost is not None:
                         doubtful_wall.append(f"the doubtful pixels of {len(pruned)} view(s) run to the working "
