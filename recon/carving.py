@@ -663,11 +663,10 @@ def keep_seen_inside(after: VoxelHull, before: VoxelHull, masks, dropped, K, T_c
     """
     from scipy import ndimage
 
-    from calib.camera import project_points
+    from calib.camera import values_at_points
 
     K, Ts = as_K(K), as_poses(T_cam_table)
     masks, dropped = np.asarray(masks, bool), np.asarray(dropped, bool)
-    H, W = masks.shape[1:]
     vals = np.asarray(before.values, np.float32).copy()
     ijk = np.argwhere(vals > 0)
     after_vals = np.asarray(after.values, np.float32)
@@ -684,11 +683,9 @@ def keep_seen_inside(after: VoxelHull, before: VoxelHull, masks, dropped, K, T_c
         sure = np.zeros(len(pts), np.int32)
         wall = np.zeros(len(pts), np.int32)
         for m, d, T in zip(masks, dropped, Ts, strict=True):
-            uv = project_points(K, T, pts)
-            u, w = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
-            ok = (u >= 0) & (w >= 0) & (u < W) & (w < H)
-            sure[ok] += m[w[ok], u[ok]]
-            wall[ok] += d[w[ok], u[ok]]
+            at = values_at_points(K, T, pts, m.astype(np.uint8) | (d.astype(np.uint8) << 1))
+            sure += at & 1
+            wall += at >> 1
         margin = 2.0 * before.voxel_mm
         back = (sure > ratio * wall) & (np.hypot(pts[:, 0], pts[:, 2]) < radius_mm - margin) \
             & (pts[:, 1] < height_mm - margin)
