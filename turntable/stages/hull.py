@@ -117,11 +117,12 @@ def _rejoined(joined: int) -> str:
                                   f"hull before the split held the gap)")
 
 
-def _seen_back(cut, before, masks, dropped, K, Ts, vol) -> tuple[object, float, float]:
+def _seen_back(cut, before, masks, unknown_before, unknown_cut, K, Ts, vol) -> tuple[object, float, float]:
     """The hull ``cut`` carved after a split of the doubt off the volume's outline, with what the views see inside
     the object back where the split took it: ``(hull, lost, mm^3 back)``.
 
-    ``before``: the hull carved before the split; ``dropped``: the pixels each view's split took. ``lost`` is the
+    ``before``: the hull carved before the split; ``unknown_before``, ``unknown_cut``: the views' doubtful pixels
+    before and after it (what the split took: in the first, not in the second, nor in ``masks``). ``lost`` is the
     largest share of a view's sure silhouette (``masks``) that ``before`` covers and the result does not
     (:func:`recon.faces.hull_uncovered_share`). Where the split alone leaves more than ``SPLIT_MAX_UNCOVERED``
     uncovered, it took a part of the object with the wall, and :func:`recon.carving.keep_seen_inside` gives back
@@ -136,6 +137,7 @@ def _seen_back(cut, before, masks, dropped, K, Ts, vol) -> tuple[object, float, 
     lost = hull_uncovered_share(before, cut, masks, K, Ts)
     if lost <= SPLIT_MAX_UNCOVERED:
         return cut, lost, 0.0
+    dropped = unknown_before & ~unknown_cut & ~masks
     seen, back_mm3 = keep_seen_inside(cut, before, masks, dropped, K, Ts, vol.radius_mm, vol.height_mm)
     return seen, hull_uncovered_share(before, seen, masks, K, Ts), back_mm3
 
@@ -286,9 +288,8 @@ def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progres
                     unsplit = hull
                     sil, hull, pruned = tried[choice]
                     hull, joined = rejoin_cut_off(hull, unsplit)
-                    hull, _, back_mm3 = _seen_back(hull, unsplit, sil.masks[keep],
-                                                   first.unknown[keep] & ~sil.unknown[keep] & ~sil.masks[keep], K,
-                                                   Ts[keep], vol)
+                    hull, _, back_mm3 = _seen_back(hull, unsplit, sil.masks[keep], first.unknown[keep],
+                                                   sil.unknown[keep], K, Ts[keep], vol)
                     doubtful_wall.append(f"WARNING: {len(pruned)} view(s) lost the doubtful pixels that ran to the "
                                          f"working volume's outline (a wall of the object's colour), {how}, and the "
                                          f"hull {'now fits' if _fits(hull) else 'still reaches it'}"
@@ -313,10 +314,11 @@ def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progres
                     # with the wall in 19 views of 36, and 5 % of a view's mask lost its hull: 1.17 % of the
                     # diagonal; the splits made on 27 other renders left at most 1.9 % of a view's mask, the
                     # chair's legs on a light wall)
-                    h_cut, lost, back_mm3 = _seen_back(h_cut, hull, sil.masks[keep],
-                                                       sil.unknown[keep] & ~unknown & ~sil.masks[keep], K, Ts[keep],
-                                                       vol)
-                    lost = lost if _fits(h_cut) and _bodies(h_cut) <= _bodies(hull) else None
+                    lost, back_mm3 = None, 0.0
+                    if _fits(h_cut):  # (what comes back keeps off the volume's outline: it fits as it did)
+                        h_cut, lost, back_mm3 = _seen_back(h_cut, hull, sil.masks[keep], sil.unknown[keep], unknown,
+                                                           K, Ts[keep], vol)
+                        lost = lost if _bodies(h_cut) <= _bodies(hull) else None
                     if lost is not None and lost <= SPLIT_MAX_UNCOVERED:
                         sil, hull = cut, h_cut
                         doubtful_wall.append(f"{len(pruned)} view(s) lost the doubtful pixels that ran to the "
