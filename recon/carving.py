@@ -676,9 +676,9 @@ def keep_seen_inside(after: VoxelHull, before: VoxelHull, masks, dropped, K, T_c
     doubt round the object's outline is dropped on both sides of it, by the views at either end of the turn
     that see it there: the ratio alone gave back the wall round the vase's neck too (1.5 mm all round).
     ``held`` ((V, H, W) bool, what each view held before the split: its mask and doubt): a voxel that a view
-    held as neither never comes back. A white snowman's nose, the wall's grey on its shaded side, went with the
-    wall in the views on that side; round it, a sleeve that the hull kept (one view on the lit side saw past it,
-    one fewer than carving takes) came back with it, 3 mm thick.
+    held as neither never comes back: that view saw past it (``before`` kept it, one view short of carving it),
+    so it is not a part of the object that only the wall's grey hid. (It does not stop the sleeve of wall round
+    a white snowman's nose, which comes back with the nose, held by every view before the split.)
     ``min_depth_mm``: what comes back, in parts (6-connected) of which none reaches that far from the voxels
     ``after`` keeps, does not: a part of the object lost with the wall is deep (the vase's shoulder: 7 mm),
     while the split's shaving of the outline is a sliver (the rim of a noisy vase's flat top, a millimetre or
