@@ -124,10 +124,12 @@ def _seen_back(cut, before, masks, unknown_before, unknown_cut, K, Ts, vol) -> t
     ``before``: the hull carved before the split; ``unknown_before``, ``unknown_cut``: the views' doubtful pixels
     before and after it (what the split took: in the first, not in the second, nor in ``masks``). ``lost`` is the
     largest share of a view's sure silhouette (``masks``) that ``before`` covers and the result does not
-    (:func:`recon.faces.hull_uncovered_share`). Where the split alone leaves more than ``SPLIT_MAX_UNCOVERED``
-    uncovered, it took a part of the object with the wall, and :func:`recon.carving.keep_seen_inside` gives back
-    the voxels more views see inside their silhouettes than hold them as the wall (a white chair's back on a
-    light wall: 18 % of a view's silhouette uncovered, 0.01 % after, the fin of wall behind it still carved).
+    (:func:`recon.faces.hull_uncovered_share`; where the split alone leaves at most ``SPLIT_MAX_UNCOVERED``, that
+    of ``cut``: what comes back only covers more, and the callers only weigh it against that bound). Where the
+    split alone leaves more than ``SPLIT_MAX_UNCOVERED`` uncovered, it took a part of the object with the wall,
+    and :func:`recon.carving.keep_seen_inside` gives back the voxels more views see inside their silhouettes than
+    hold them as the wall (a white chair's back on a light wall: 18 % of a view's silhouette uncovered, 0.01 %
+    after, the fin of wall behind it still carved).
     Elsewhere it gives back only those of them that the views holding them as the wall hold from one side of
     the turn (``SEEN_ONE_SIDE``): a part of the object's shaded side, doubt that went with the wall in the views
     that see it at their outline (a white vase on a light wall: its shoulder, carved 7 mm deep all round while
@@ -148,8 +150,8 @@ def _seen_back(cut, before, masks, unknown_before, unknown_cut, K, Ts, vol) -> t
                                       one_side=SEEN_ONE_SIDE if one_sided else None,
                                       held=masks | unknown_before if one_sided else None,
                                       min_depth_mm=SEEN_DEEP_MM if one_sided else None)
-    if one_sided and back_mm3 <= 0:
-        return cut, lost, 0.0  # nothing came back: the split's hull as it was carved
+    if one_sided:  # under the bound already: not projected again
+        return (cut, lost, 0.0) if back_mm3 <= 0 else (seen, lost, back_mm3)
     return seen, hull_uncovered_share(before, seen, masks, K, Ts), back_mm3
 
 
