@@ -469,7 +469,7 @@ def doubt_unlike(mask: np.ndarray, held: np.ndarray, doubtful: np.ndarray, unlik
 
 
 def doubt_enclosed(img: np.ndarray, held: np.ndarray, doubtful: np.ndarray, tau: float,
-                   smooth_share: float = 0.5) -> np.ndarray:
+                   smooth_share: float = 0.5, moved: np.ndarray | None = None) -> np.ndarray:
     """(h, w) bool: holes of ``held`` (a frame's mask and unknown pixels) that are doubtful throughout and
     joined to it through smooth shading.
 
@@ -491,6 +491,15 @@ def doubt_enclosed(img: np.ndarray, held: np.ndarray, doubtful: np.ndarray, tau:
     background's own evidence (the printed ink, a colour none of the
     object's), and stays. Holes are 4-connected (the held pixels
     8-connected) and do not touch the box's border.
+
+    With ``moved`` ((h, w) bool: the pixels that are not the still room,
+    :func:`recon.silhouette_plates.moved_pixels`), a hole the held pixels round
+    which mostly moved, and whose inside (two pixels in from them) mostly did not, stays
+    too: the still room seen through a part that turns, not a static body's
+    surface (neither moves). A white chair's back from 20 deg up, before a
+    light wall of its grey: the wall between its rails, its edges as faint
+    as the rails', was filled in 30 views of 36 (1.02 -> 1.28 % of the
+    diagonal).
     """
     free = ~held
     lab, fill, _ = _doubtful_holes(held, doubtful)
@@ -499,6 +508,16 @@ def doubt_enclosed(img: np.ndarray, held: np.ndarray, doubtful: np.ndarray, tau:
     n_rim = np.bincount(lab[rim], minlength=n)
     n_smooth = np.bincount(lab[rim & no_edge(img, tau)], minlength=n)
     fill &= n_smooth >= smooth_share * np.maximum(n_rim, 1)
+    if moved is not None and fill.any():
+        # the held pixels round each hole (labelled by the hole they touch), and the hole's inside
+        around = cv2.dilate(np.where(fill[lab], lab, 0).astype(np.float32), np.ones((3, 3), np.uint8))
+        around = np.where(held, around, 0).astype(np.int64)
+        n_around = np.bincount(around[around > 0], minlength=n)
+        rim_moved = np.bincount(around[(around > 0) & moved], minlength=n) > 0.5 * n_around
+        inside = free & (cv2.dilate(held.astype(np.uint8), np.ones((5, 5), np.uint8)) == 0)
+        n_inside = np.bincount(lab[inside], minlength=n)
+        inside_still = (n_inside > 0) & (np.bincount(lab[inside & moved], minlength=n) < 0.5 * n_inside)
+        fill &= ~(rim_moved & inside_still)
     return fill[lab]
 
 

@@ -685,6 +685,31 @@ def test_doubt_enclosed_closes_a_smooth_belly_and_keeps_views_through_the_object
     assert doubt_enclosed(img, held2, ~held2, tau)[belly].all()
 
 
+def test_a_hole_in_a_turning_part_that_shows_the_still_room_stays_open():
+    """A chair's back before a wall of its grey: the wall between its rails is a doubtful hole with no edge
+    round it. Where the rails moved against the still room and the wall between them did not, it stays open;
+    where nothing moved (a static body's surface) or the hole moved as well, it is filled as before."""
+    from recon.silhouette_doubt import doubt_enclosed
+
+    h, w, tau = 60, 80, 4.0
+    img = np.full((h, w, 3), 150, np.uint8)
+    held = np.zeros((h, w), bool)
+    held[10:50, 20:60] = True  # the back
+    gap = np.zeros_like(held)
+    gap[18:42, 28:52] = True  # the wall between its rails
+    held &= ~gap
+    doubtful = ~held
+    assert doubt_enclosed(img, held, doubtful, tau)[gap].all()
+    moved = held.copy()
+    moved[10:50, 20:23] = False  # not every rail pixel moved (a faint part)
+    got = doubt_enclosed(img, held, doubtful, tau, moved=moved)
+    assert not got.any()
+    assert doubt_enclosed(img, held, doubtful, tau, moved=np.zeros_like(held))[gap].all()
+    assert doubt_enclosed(img, held, doubtful, tau, moved=held | gap)[gap].all()
+    few = held & (np.arange(w)[None, :] < 32)  # a third of the rim moved
+    assert doubt_enclosed(img, held, doubtful, tau, moved=few)[gap].all()
+
+
 def test_a_static_objects_dark_crease_that_no_plate_vouches_for_is_doubtful():
     """One row of a frame on a light wall (200): the mask holds the figure's light grey body (180); beside it
     its chin's dark crease (60, a colour the mask does not show) where the room plate is trusted (the static
@@ -1429,3 +1454,99 @@ def test_channel_sum_is_numpys_sum_over_the_colour_channels():
         got, want = channel_sum(a), a.sum(axis=-1)
         assert got.dtype == want.dtype and got.shape == want.shape  # (uint8: numpy's wider sum, no wrap-around)
         np.testing.assert_array_equal(got, want)
+
+
+def _wall_with_a_turning_rail(rail_dn: float, seed: int = 0):
+    """Twelve frames of a still wall (its grey varies across it; camera noise 1.5 DN), a rail ``rail_dn`` brighter
+    than the wall that moves 8 px a frame, and a post 30 DN brighter in the same place in every frame (a body of
+    revolution). Returns the frames, the room plate (their median) and the rail's pixels per frame."""
+    from recon.silhouette_plates import median_frames
+
+    rng = np.random.default_rng(seed)
+    h, w, V = 120, 200, 12
+    base = np.repeat((100 + 40 * np.linspace(0, 1, w))[None, :, None], h, 0).repeat(3, 2)
+    frames, rails = [], []
+    for i in range(V):
+        f = base + rng.normal(0, 1.5, (h, w, 3))
+        rail = np.zeros((h, w), bool)
+        rail[40:50, 40 + 8 * i:80 + 8 * i] = True
+        f[rail] += rail_dn
+        f[60:110, 20:30] += 30.0  # the post
+        frames.append(np.clip(np.round(f), 0, 255).astype(np.uint8))
+        rails.append(rail)
+    frames = np.stack(frames)
+    return frames, median_frames(frames), np.stack(rails)
+
+
+def test_moved_pixels_find_a_faint_turning_part_and_not_the_still_room():
+    """A rail 4 DN brighter than the wall (under the camera's per-pixel noise, 99.9th percentile ~5 DN) that turns
+    with the table has moved; the still wall and a post in the same pixels of every frame have not. Judged
+    pixel by pixel (a 1 x 1 window) the rail is lost in the noise. Without enough still pixels to measure the
+    noise on, nothing has moved."""
+    from recon.silhouette_plates import MOVED_MIN_STILL, moved_pixels
+
+    frames, room, rails = _wall_with_a_turning_rail(4.0)
+    still = np.zeros(room.shape[:2], bool)
+    still[:20] = True  # the room above: nothing there ever turns
+    still[:, -10:] = True
+    moved = moved_pixels(frames, room, still, 5)
+    core = np.stack([cv2.erode(r.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0 for r in rails])
+    assert moved[core].mean() > 0.95
+    far = ~np.stack([cv2.dilate(r.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0 for r in rails])
+    assert moved[far].mean() < 0.001  # the wall and the post
+    assert moved[:, 60:110, 20:30].mean() < 0.001
+    assert moved_pixels(frames, room, still, 1)[core].mean() < 0.3
+    few = np.zeros_like(still)
+    few.flat[:MOVED_MIN_STILL - 1] = True
+    assert not moved_pixels(frames, room, few, 5).any()
+
+
+def test_moved_doubt_joins_what_the_view_holds_only_where_it_touches():
+    """The moved doubtful pixels join a view's unknown in parts that touch what it holds (a chair's back beyond
+    the edge at its seat), not in parts apart from it (something else moving in the room)."""
+    from recon.silhouettes import _moved_joined
+
+    held = np.zeros((60, 80), bool)
+    held[30:50, 20:60] = True  # the seat
+    cand = np.zeros_like(held)
+    cand[5:31, 25:30] = True  # the back's post, overlapping the seat's top row
+    cand[5:20, 70:75] = True  # apart
+    got = _moved_joined(held, cand)
+    assert got[5:30, 25:30].all()
+    assert not got[5:20, 70:75].any()
+    assert not (got & held).any()
+    assert not _moved_joined(held, np.zeros_like(held)).any()
+
+
+def test_the_room_behind_what_the_masks_often_hold_is_the_room():
+    """Where an object covers a pixel in most frames (a snowman's off-axis head) the plain median is the object,
+    and the frames that show the wall there differ from it: moved, though the room. The room from the frames
+    whose masks leave the pixel is the wall's: nothing moves there, and the turning rail still does. A pixel
+    that nearly every mask holds has no room to say."""
+    from recon.silhouette_plates import median_frames, moved_pixels, room_off_masks
+
+    frames, _, rails = _wall_with_a_turning_rail(6.0)
+    head = np.zeros(frames.shape[1:3], bool)
+    head[70:100, 100:140] = True
+    frames = frames.copy()
+    away = [0, 1, 2]  # the head elsewhere in three frames of twelve
+    for i in range(len(frames)):
+        if i not in away:
+            frames[i][head] = np.clip(frames[i][head].astype(int) + 20, 0, 255).astype(np.uint8)
+    masks = np.stack([head if i not in away else np.zeros_like(head) for i in range(len(frames))])
+    still = np.zeros_like(head)
+    still[:20] = True
+    core = cv2.erode(head.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    plain = moved_pixels(frames, median_frames(frames), still, 5)
+    assert plain[away][:, core].mean() > 0.95  # the wall where the head usually is: moved
+    room, known = room_off_masks(frames, masks)
+    assert known.all()
+    moved = moved_pixels(frames, room, still, 5)
+    assert moved[away][:, core].mean() < 0.01
+    assert moved[[i for i in range(len(frames)) if i not in away]][:, core].mean() > 0.95  # the head over the wall
+    rail_core = np.stack([cv2.erode(r.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0 for r in rails])
+    assert moved[rail_core & ~head].mean() > 0.95
+    masks[3:] = True  # held everywhere in nine frames: only three give the room
+    assert room_off_masks(frames, masks)[1].all()
+    masks[2] = True
+    assert not room_off_masks(frames, masks)[1].any()

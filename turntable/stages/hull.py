@@ -106,6 +106,11 @@ def _bodies(hull) -> int:
     return int(np.count_nonzero(size >= MIN_BODY_FRACTION * size.max()))
 
 
+def _kept(stack: np.ndarray | None, keep: list[int]) -> np.ndarray | None:
+    """``stack[keep]``, or None where there is no stack."""
+    return None if stack is None else stack[keep]
+
+
 def _inside_mm3(hull) -> float:
     """The hull's volume (its grid is fitted to what it carves: compare in mm^3, not voxels)."""
     return float((hull.values > 0).sum()) * hull.voxel_mm ** 3
@@ -269,7 +274,8 @@ def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progres
                 first, tried = sil, {}
                 for whole in (False, True):
                     unknown, pruned = doubt_off_the_outline(first.masks[keep], first.unknown[keep], K, Ts[keep],
-                                                            vol, [images_rgb[k] for k in keep], whole=whole)
+                                                            vol, [images_rgb[k] for k in keep], whole=whole,
+                                                            moved=_kept(first.moved, keep))
                     if not pruned:
                         break
                     cut = replace(first, unknown=first.unknown.copy())
@@ -315,7 +321,7 @@ def silhouettes_and_hull(images_rgb, names, K, Ts, opts, cache, sil_key, progres
                 # that the views seeing it edge-on cannot carve (a cream figure on a light wall: a sheet from
                 # its staff to its arm at the height of its head, 1.6 % of the diagonal): the same split
                 unknown, pruned = doubt_off_the_outline(sil.masks[keep], sil.unknown[keep], K, Ts[keep], vol,
-                                                        [images_rgb[k] for k in keep])
+                                                        [images_rgb[k] for k in keep], moved=_kept(sil.moved, keep))
                 if pruned:
                     cut = replace(sil, unknown=sil.unknown.copy())
                     cut.unknown[keep] = unknown

@@ -19,6 +19,7 @@ class Silhouettes:
     unknown: np.ndarray  # (V, H, W) bool: neither object nor background for sure (carving keeps it)
     status: list[str]  # "ok", "conservative: <reason>" (kept) or "rejected: <reason>" (dropped)
     ground: tuple[float, float, float] | None = None  # a coloured printed ground's chromaticity, recognised
+    moved: np.ndarray | None = None  # (V, H, W) bool: off the disc, not the still room (automatic silhouettes only)
 
 
 def ground_name(chroma) -> str:
@@ -175,14 +176,16 @@ def undistort_masks(masks: np.ndarray, intr, ws: WorkSize) -> np.ndarray:
 def silhouettes_stage(images_rgb, names, K, Ts, opts, cache, key, progress, vol, ws, intr=None) -> Silhouettes:
     V, (w, h) = len(names), ws.work
     fields = {"masks": ("b", (V, h, w)), "unknown": ("b", (V, h, w)), "status": ("U", (V,))}
+    if opts.masks_dir is None:  # (a cache written before the moved pixels were kept is recomputed)
+        fields["moved"] = ("b", (V, h, w))
     hit = cache.load("silhouettes", key, fields)
     if hit is not None:
         progress.note("silhouettes: reused")
         # (a cache written before the ground was kept has none: nothing recognised to report)
         kept = np.asarray(hit.get("ground", ()), float).ravel()
         ground = tuple(float(c) for c in kept) if kept.shape == (3,) and np.isfinite(kept).all() else None
-        return Silhouettes(hit["masks"], hit["unknown"], [str(s) for s in hit["status"]], ground)
-    ground = None
+        return Silhouettes(hit["masks"], hit["unknown"], [str(s) for s in hit["status"]], ground, hit.get("moved"))
+    ground, moved = None, None
     with progress.stage("silhouettes") as tick:
         if opts.masks_dir is not None:
             masks, empty = read_masks(opts.masks_dir, names, ws, progress)
@@ -201,12 +204,13 @@ def silhouettes_stage(images_rgb, names, K, Ts, opts, cache, key, progress, vol,
                 raise UserError(f"{opts.input}: silhouettes: {exc}") from None
             masks, status = np.asarray(res.masks, bool), list(res.status)
             unknown = np.asarray(res.unknown, bool)
-            ground = res.ground
+            ground, moved = res.ground, res.moved
             if ground is not None:
                 progress.note(f"silhouettes: {describe_ground(ground)}")
+    extra = {} if moved is None else {"moved": moved}
     cache.save("silhouettes", key, masks=masks, unknown=unknown, status=np.array(status),
-               ground=np.array(ground if ground is not None else (), float))
-    return Silhouettes(masks, unknown, status, ground)
+               ground=np.array(ground if ground is not None else (), float), **extra)
+    return Silhouettes(masks, unknown, status, ground, moved)
 
 
 GREY = ("the photos are greyscale: automatic silhouettes tell the object from the table and the background "
