@@ -510,7 +510,7 @@ def test_a_split_that_takes_part_of_the_object_off_where_the_hull_fits_is_not_ma
             unknown[i] |= top
         return type(res)(**{**res.__dict__, "masks": masks, "unknown": unknown})
 
-    def split_off_the_top(masks, unknown, K, Ts, vol, images_rgb=None, whole=False):
+    def split_off_the_top(masks, unknown, K, Ts, vol, images_rgb=None, whole=False, moved=None):
         out = unknown & masks  # every doubtful pixel off the mask went with the wall
         return out, [i for i in range(len(masks)) if (unknown[i] & ~masks[i]).any()]
 
