@@ -1091,13 +1091,9 @@ def _frame_mask(img, region, base, plates: Plates, T, tau, verified: bool) -> _F
 
 
 def _moved_joined(held: np.ndarray, cand: np.ndarray) -> np.ndarray:
-    """(h, w) bool: the parts of ``cand`` (8-connected) that touch ``held`` (or lie in it), less ``held``."""
-    n, lab = cv2.connectedComponents(cand.astype(np.uint8), connectivity=8)
-    if n <= 1:
-        return np.zeros_like(held)
-    near = cv2.dilate(held.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    hit = np.unique(lab[near & cand])
-    return np.isin(lab, hit[hit > 0]) & ~held
+    """(h, w) bool: the parts of ``cand`` (8-connected) that touch ``held`` (or lie in it), less ``held``
+    (:func:`recon.silhouette_doubt.reach`, one pixel, one round, as :func:`~recon.silhouette_doubt.doubt_unlike`)."""
+    return reach(cand, held, 1, rounds=1) & ~held
 
 
 def _keep_joined(held: np.ndarray, mask: np.ndarray, drop: np.ndarray) -> np.ndarray:
