@@ -593,19 +593,30 @@ def test_the_openings_read_the_edges_the_silhouettes_left_in_doubt_and_the_flat_
     assert len(tops) == 12 and used == {"tops": False, "openings": True}
 
 
+def _three_views(scene):
+    """The scene's first three views for the split's tests: K, poses, true masks, photos, a working volume
+    round the vase (80 x 125 mm) and view 1's image of it."""
+    import cv2
+
+    from recon.silhouettes import cylinder_region
+    from turntable.stages.volume import WorkingVolume
+
+    gt = read_cameras(scene / "cameras_gt.json")
+    K, Ts = gt.intrinsics.K, np.stack([f.T_cam_table for f in gt.frames])[:3]
+    masks = np.stack([cv2.imread(str(p), 0) > 127 for p in sorted((scene / "masks").glob("*.png"))[:3]])
+    images = [cv2.imread(str(p))[..., ::-1] for p in sorted((scene / "images").glob("*"))[:3]]
+    vol = WorkingVolume(radius_mm=80.0, height_mm=125.0, max_radius_mm=200.0, max_height_mm=300.0, source="test")
+    return K, Ts, masks, images, vol, cylinder_region(K, Ts[1], (640, 480), vol.radius_mm, vol.height_mm)
+
+
 def test_doubt_off_the_outline_drops_only_the_pieces_that_reach_it(scene):
     """A doubtful band around the object stays; a doubtful piece joined to it that runs up to the top of
     the volume's image (a wall of the object's grey) goes, in that view only."""
     import cv2
 
-    from recon.silhouettes import cylinder_region
-    from turntable.stages.volume import WorkingVolume, doubt_off_the_outline
+    from turntable.stages.volume import doubt_off_the_outline
 
-    gt = read_cameras(scene / "cameras_gt.json")
-    K, Ts = gt.intrinsics.K, np.stack([f.T_cam_table for f in gt.frames])[:3]
-    masks = np.stack([cv2.imread(str(p), 0) > 127 for p in sorted((scene / "masks").glob("*.png"))[:3]])
-    vol = WorkingVolume(radius_mm=80.0, height_mm=125.0, max_radius_mm=200.0, max_height_mm=300.0, source="test")
-    region = cylinder_region(K, Ts[1], (640, 480), vol.radius_mm, vol.height_mm)
+    K, Ts, masks, _, vol, region = _three_views(scene)
     assert region[:3].sum() == 0  # the volume's top is in view (the vase: 110 mm tall)
     band = np.stack([(cv2.dilate(m.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0) & ~m for m in masks])
     unknown = band.copy()
@@ -651,17 +662,9 @@ def test_doubt_off_the_outline_splits_the_object_from_the_wall_along_its_edge(sc
     """With the photos, a doubtful top of the object (cut from its mask: the neck through which a wall of its
     colour joined) stays unknown; the wall beyond the object's outline, flat in the photo, goes. Without them
     (or ``whole=True``) the piece goes whole."""
-    import cv2
+    from turntable.stages.volume import doubt_off_the_outline
 
-    from recon.silhouettes import cylinder_region
-    from turntable.stages.volume import WorkingVolume, doubt_off_the_outline
-
-    gt = read_cameras(scene / "cameras_gt.json")
-    K, Ts = gt.intrinsics.K, np.stack([f.T_cam_table for f in gt.frames])[:3]
-    truth = np.stack([cv2.imread(str(p), 0) > 127 for p in sorted((scene / "masks").glob("*.png"))[:3]])
-    images = [cv2.imread(str(p))[..., ::-1] for p in sorted((scene / "images").glob("*"))[:3]]
-    vol = WorkingVolume(radius_mm=80.0, height_mm=125.0, max_radius_mm=200.0, max_height_mm=300.0, source="test")
-    region = cylinder_region(K, Ts[1], (640, 480), vol.radius_mm, vol.height_mm)
+    K, Ts, truth, images, vol, region = _three_views(scene)
     ys, xs = np.nonzero(truth[1])
     neck = truth[1].copy()
     neck[ys.min() + 25:] = False  # the object's top 25 rows: doubtful, not in its mask
@@ -687,15 +690,9 @@ def test_the_split_never_gives_the_wall_what_moved(scene):
     of the wall still goes, the rim round the part that the window spread its difference over included."""
     import cv2
 
-    from recon.silhouettes import cylinder_region
-    from turntable.stages.volume import WorkingVolume, doubt_off_the_outline
+    from turntable.stages.volume import doubt_off_the_outline
 
-    gt = read_cameras(scene / "cameras_gt.json")
-    K, Ts = gt.intrinsics.K, np.stack([f.T_cam_table for f in gt.frames])[:3]
-    masks = np.stack([cv2.imread(str(p), 0) > 127 for p in sorted((scene / "masks").glob("*.png"))[:3]])
-    images = [cv2.imread(str(p))[..., ::-1] for p in sorted((scene / "images").glob("*"))[:3]]
-    vol = WorkingVolume(radius_mm=80.0, height_mm=125.0, max_radius_mm=200.0, max_height_mm=300.0, source="test")
-    region = cylinder_region(K, Ts[1], (640, 480), vol.radius_mm, vol.height_mm)
+    K, Ts, masks, images, vol, region = _three_views(scene)
     ys, xs = np.nonzero(masks[1])
     wall = np.zeros_like(masks[1])
     wall[:ys.min(), xs.min() - 20:xs.max() + 20] = True  # from the object's top up to the image's top
